@@ -1,0 +1,475 @@
+//! Run configuration: TOML + serde.
+//!
+//! The defaults live in one place, the annotated `default.toml` compiled into the binaries.
+//! Loading layers three sources over each other: defaults, then an optional file, then
+//! `--set key=value` overrides. Every struct denies unknown keys so a typo is an error, not a
+//! silently ignored setting.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// The annotated defaults; `learner config --defaults` prints it.
+pub const DEFAULT_TOML: &str = include_str!("default.toml");
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read { path: String, source: std::io::Error },
+    #[error("config {origin} is not valid TOML: {source}")]
+    Parse { origin: String, source: Box<toml::de::Error> },
+    #[error("override {0:?} is not of the form section.key=value")]
+    OverrideSyntax(String),
+    #[error("unknown config key {key:?} (see `learner config --defaults` for every key)")]
+    UnknownKey { key: String },
+    #[error("invalid configuration: {0}")]
+    Invalid(String),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    pub run: RunSection,
+    pub scenario: ScenarioConfig,
+    pub rollout: RolloutConfig,
+    pub ppo: PpoConfig,
+    pub learner: LearnerSection,
+    pub server: ServerSection,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunSection {
+    pub seed: u64,
+    pub max_seconds: f64,
+    pub max_updates: u64,
+    pub max_agent_steps: u64,
+    pub progress_interval_s: f64,
+    pub checkpoint_every_updates: u64,
+    pub keep_checkpoints: usize,
+    pub stats_window_episodes: usize,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScenarioConfig {
+    pub name: String,
+    pub kind: SceneKind,
+    pub agents: usize,
+    pub horizon: u32,
+    pub agent_horizon: u32,
+    pub crash_obstacle_steps: u32,
+    pub neighbour_radius: f32,
+    pub decision_dt: f32,
+    pub substeps: u32,
+    pub intersection: IntersectionConfig,
+    pub spawn: SpawnConfig,
+    pub sensors: SensorConfig,
+    pub reward: RewardConfig,
+    pub cost: CostConfig,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SceneKind {
+    Intersection,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntersectionConfig {
+    pub lanes_per_direction: usize,
+    pub lane_width: f32,
+    pub corner_radius: f32,
+    pub approach_length: f32,
+    pub routes: Vec<Manoeuvre>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Manoeuvre {
+    Straight,
+    Left,
+    Right,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpawnConfig {
+    pub slot_spacing: f32,
+    pub longitudinal_jitter: f32,
+    pub lateral_jitter: f32,
+    pub respawn_clear_length: f32,
+    pub respawn_clear_width: f32,
+    pub initial_speed: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorConfig {
+    pub lidar_beams: usize,
+    pub lidar_range: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RewardConfig {
+    pub displacement: f32,
+    pub speed: f32,
+    pub success: f32,
+    pub crash: f32,
+    pub out_of_road: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CostConfig {
+    pub collision: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RolloutConfig {
+    pub fragment_length: usize,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PpoConfig {
+    pub learning_rate: f64,
+    pub adam_eps: f64,
+    pub gamma: f32,
+    pub gae_lambda: f32,
+    pub clip: f64,
+    pub epochs: usize,
+    pub minibatch_size: usize,
+    pub train_batch_env_steps: usize,
+    pub entropy_coef: f64,
+    pub value_coef: f64,
+    pub value_clip: f64,
+    pub max_grad_norm: f64,
+    pub hidden: Vec<i64>,
+    pub init_log_std: f64,
+    pub normalize_advantages: bool,
+    pub normalize_observations: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LearnerSection {
+    pub device: DeviceChoice,
+    pub ingest_queue_fragments: usize,
+    pub max_policy_lag: u64,
+    pub torch_threads: usize,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum DeviceChoice {
+    Cpu,
+    Cuda,
+    #[default]
+    Auto,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServerSection {
+    pub addr: String,
+    pub metrics_addr: String,
+    pub max_message_bytes: usize,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        // The embedded defaults are checked by a unit test; failing here is a build defect.
+        RunConfig::load(None, &[]).expect("embedded default.toml is valid")
+    }
+}
+
+impl Default for ScenarioConfig {
+    fn default() -> Self {
+        RunConfig::default().scenario
+    }
+}
+
+impl RunConfig {
+    /// Defaults, then `file` (if any), then `overrides` (`section.key=value`), validated.
+    pub fn load(file: Option<&Path>, overrides: &[String]) -> Result<Self, ConfigError> {
+        let mut tree = parse_toml(DEFAULT_TOML, "defaults")?;
+        if let Some(path) = file {
+            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                path: path.display().to_string(),
+                source,
+            })?;
+            let user = parse_toml(&text, &path.display().to_string())?;
+            merge(&mut tree, user, "")?;
+        }
+        for item in overrides {
+            apply_override(&mut tree, item)?;
+        }
+        let config: RunConfig = deserialize(tree, "the merged configuration")?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The effective configuration as TOML (recorded in checkpoints and run directories).
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise config: {e}"))
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.scenario.validate()?;
+        let p = &self.ppo;
+        let mut problems = Vec::new();
+        if self.rollout.fragment_length == 0 {
+            problems.push("rollout.fragment_length must be > 0".to_string());
+        }
+        if p.learning_rate <= 0.0 || !p.learning_rate.is_finite() {
+            problems.push("ppo.learning_rate must be a positive number".to_string());
+        }
+        if !(0.0..=1.0).contains(&p.gamma) || !(0.0..=1.0).contains(&p.gae_lambda) {
+            problems.push("ppo.gamma and ppo.gae_lambda must be in [0, 1]".to_string());
+        }
+        if p.clip <= 0.0 {
+            problems.push("ppo.clip must be > 0".to_string());
+        }
+        if p.epochs == 0 || p.minibatch_size == 0 || p.train_batch_env_steps == 0 {
+            problems.push(
+                "ppo.epochs, ppo.minibatch_size and ppo.train_batch_env_steps must be > 0"
+                    .to_string(),
+            );
+        }
+        if p.hidden.is_empty() || p.hidden.iter().any(|&h| h <= 0) {
+            problems.push("ppo.hidden must list at least one positive layer size".to_string());
+        }
+        if self.learner.ingest_queue_fragments == 0 {
+            problems.push("learner.ingest_queue_fragments must be > 0".to_string());
+        }
+        if self.run.stats_window_episodes == 0 || self.run.keep_checkpoints == 0 {
+            problems.push(
+                "run.stats_window_episodes and run.keep_checkpoints must be > 0".to_string(),
+            );
+        }
+        if self.run.progress_interval_s <= 0.0 {
+            problems.push("run.progress_interval_s must be > 0".to_string());
+        }
+        join_problems(problems)
+    }
+}
+
+impl ScenarioConfig {
+    /// Parses a scenario sent by the learner (or a scenario file), layered over the defaults.
+    pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
+        let mut tree = parse_toml(DEFAULT_TOML, "defaults")?;
+        let scenario_default = tree
+            .get_mut("scenario")
+            .ok_or_else(|| ConfigError::Invalid("defaults lack [scenario]".into()))?;
+        merge(scenario_default, parse_toml(text, "scenario")?, "scenario")?;
+        let scenario: ScenarioConfig =
+            deserialize(scenario_default.clone(), "the scenario configuration")?;
+        scenario.validate()?;
+        Ok(scenario)
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise scenario: {e}"))
+    }
+
+    pub fn obs_dim(&self) -> usize {
+        crate::spec::obs_dim(self.sensors.lidar_beams)
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let mut problems = Vec::new();
+        if self.agents == 0 {
+            problems.push("scenario.agents must be > 0".to_string());
+        }
+        if self.horizon == 0 || self.agent_horizon == 0 {
+            problems.push("scenario.horizon and scenario.agent_horizon must be > 0".to_string());
+        }
+        if !(self.decision_dt > 0.0) || self.substeps == 0 {
+            problems.push("scenario.decision_dt and scenario.substeps must be > 0".to_string());
+        }
+        if !(self.neighbour_radius >= 0.0) {
+            problems.push("scenario.neighbour_radius must be >= 0".to_string());
+        }
+        let i = &self.intersection;
+        if !(1..=3).contains(&i.lanes_per_direction) {
+            problems.push("scenario.intersection.lanes_per_direction must be 1, 2 or 3".into());
+        }
+        if !(i.lane_width >= 2.5) || !(i.corner_radius >= 0.0) {
+            problems.push(
+                "scenario.intersection.lane_width must be >= 2.5 m and corner_radius >= 0".into(),
+            );
+        }
+        if i.routes.is_empty() {
+            problems.push("scenario.intersection.routes must name at least one manoeuvre".into());
+        }
+        let s = &self.spawn;
+        if !(s.slot_spacing >= 5.0) {
+            problems.push("scenario.spawn.slot_spacing must be >= 5 m (a car is 4.5 m)".into());
+        }
+        if !(i.approach_length >= s.slot_spacing) {
+            problems.push(
+                "scenario.intersection.approach_length must hold at least one spawn slot".into(),
+            );
+        }
+        if !(s.initial_speed >= 0.0) {
+            problems.push("scenario.spawn.initial_speed must be >= 0".into());
+        }
+        if self.sensors.lidar_beams == 0 || !(self.sensors.lidar_range > 0.0) {
+            problems.push("scenario.sensors needs lidar_beams > 0 and lidar_range > 0".into());
+        }
+        let r = &self.reward;
+        let numbers = [r.displacement, r.speed, r.success, r.crash, r.out_of_road];
+        if numbers.iter().any(|v| !v.is_finite()) || !self.cost.collision.is_finite() {
+            problems.push("scenario.reward and scenario.cost values must be finite".into());
+        }
+        join_problems(problems)
+    }
+}
+
+fn join_problems(problems: Vec<String>) -> Result<(), ConfigError> {
+    if problems.is_empty() { Ok(()) } else { Err(ConfigError::Invalid(problems.join("; "))) }
+}
+
+fn parse_toml(text: &str, origin: &str) -> Result<toml::Value, ConfigError> {
+    text.parse::<toml::Table>()
+        .map(toml::Value::Table)
+        .map_err(|source| ConfigError::Parse { origin: origin.to_string(), source: Box::new(source) })
+}
+
+fn deserialize<T: serde::de::DeserializeOwned>(
+    tree: toml::Value,
+    origin: &str,
+) -> Result<T, ConfigError> {
+    tree.try_into().map_err(|source| ConfigError::Parse {
+        origin: origin.to_string(),
+        source: Box::new(source),
+    })
+}
+
+/// Overlays `user` onto `base`; only keys that exist in the defaults are accepted, so a typo
+/// is reported with its full path.
+fn merge(base: &mut toml::Value, user: toml::Value, prefix: &str) -> Result<(), ConfigError> {
+    let (toml::Value::Table(base_table), toml::Value::Table(user_table)) = (&mut *base, &user)
+    else {
+        *base = user;
+        return Ok(());
+    };
+    for (key, value) in user_table.clone() {
+        let path = if prefix.is_empty() { key.clone() } else { format!("{prefix}.{key}") };
+        match base_table.get_mut(&key) {
+            Some(slot @ toml::Value::Table(_)) => merge(slot, value, &path)?,
+            Some(slot) => *slot = value,
+            None => return Err(ConfigError::UnknownKey { key: path }),
+        }
+    }
+    Ok(())
+}
+
+fn apply_override(tree: &mut toml::Value, item: &str) -> Result<(), ConfigError> {
+    let (path, raw) =
+        item.split_once('=').ok_or_else(|| ConfigError::OverrideSyntax(item.to_string()))?;
+    let path = path.trim();
+    if path.is_empty() {
+        return Err(ConfigError::OverrideSyntax(item.to_string()));
+    }
+    // A value is TOML (`0.5`, `true`, `[64, 64]`, `"x"`); a bare word is taken as a string.
+    let value = format!("v = {raw}")
+        .parse::<toml::Table>()
+        .ok()
+        .and_then(|mut t| t.remove("v"))
+        .unwrap_or_else(|| toml::Value::String(raw.trim().to_string()));
+    let mut node = tree;
+    let keys: Vec<&str> = path.split('.').collect();
+    for (depth, key) in keys.iter().enumerate() {
+        let unknown = || ConfigError::UnknownKey { key: path.to_string() };
+        let table = node.as_table_mut().ok_or_else(unknown)?;
+        let child = table.get_mut(*key).ok_or_else(unknown)?;
+        if depth + 1 == keys.len() {
+            if child.is_table() {
+                return Err(ConfigError::Invalid(format!(
+                    "{path} is a section; override one of its keys instead"
+                )));
+            }
+            *child = value;
+            return Ok(());
+        }
+        node = child;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_defaults_load_and_match_metadrive() {
+        let c = RunConfig::load(None, &[]).unwrap();
+        assert_eq!(c.scenario.agents, 30);
+        assert_eq!(c.scenario.intersection.lanes_per_direction, 2);
+        assert_eq!(c.scenario.obs_dim(), 91);
+        assert_eq!(c.ppo.hidden, vec![256, 256]);
+        assert_eq!(c.rollout.fragment_length, 200);
+    }
+
+    #[test]
+    fn every_default_key_is_documented_by_a_comment() {
+        // The key lines of default.toml must each follow a comment line (or a key of the
+        // same documented group): the file is the reference documentation of the config.
+        let mut previous_was_doc = false;
+        for line in DEFAULT_TOML.lines().map(str::trim) {
+            if line.starts_with('#') {
+                previous_was_doc = true;
+            } else if line.is_empty() {
+                previous_was_doc = false;
+            } else if line.starts_with('[') {
+                previous_was_doc = false;
+            } else {
+                assert!(previous_was_doc, "undocumented key in default.toml: {line}");
+            }
+        }
+    }
+
+    #[test]
+    fn overrides_reach_nested_keys_and_reject_typos() {
+        let c = RunConfig::load(
+            None,
+            &["ppo.learning_rate=1e-3".into(), "scenario.intersection.routes=[\"left\"]".into()],
+        )
+        .unwrap();
+        assert_eq!(c.ppo.learning_rate, 1e-3);
+        assert_eq!(c.scenario.intersection.routes, vec![Manoeuvre::Left]);
+        let err = RunConfig::load(None, &["ppo.learnin_rate=1".into()]).unwrap_err();
+        assert!(matches!(err, ConfigError::UnknownKey { ref key } if key == "ppo.learnin_rate"));
+        let bare = RunConfig::load(None, &["learner.device=cpu".into()]).unwrap();
+        assert_eq!(bare.learner.device, DeviceChoice::Cpu);
+    }
+
+    #[test]
+    fn file_layer_rejects_unknown_keys_and_bad_values() {
+        let dir = std::env::temp_dir().join(format!("junction-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("c.toml");
+        std::fs::write(&path, "[ppo]\nclip = 0.2\n[scenario]\nagents = 4\n").unwrap();
+        let c = RunConfig::load(Some(&path), &[]).unwrap();
+        assert_eq!((c.ppo.clip, c.scenario.agents), (0.2, 4));
+        std::fs::write(&path, "[ppo]\nclipp = 0.2\n").unwrap();
+        assert!(matches!(
+            RunConfig::load(Some(&path), &[]),
+            Err(ConfigError::UnknownKey { .. })
+        ));
+        std::fs::write(&path, "[ppo]\nepochs = 0\n").unwrap();
+        assert!(matches!(RunConfig::load(Some(&path), &[]), Err(ConfigError::Invalid(_))));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn scenario_round_trips_through_toml() {
+        let s = ScenarioConfig { agents: 3, ..ScenarioConfig::default() };
+        assert_eq!(ScenarioConfig::from_toml(&s.to_toml()).unwrap(), s);
+    }
+}

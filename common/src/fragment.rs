@@ -1,0 +1,456 @@
+//! `RolloutFragment`: T scene steps × N agent slots of one scene, structure of arrays.
+//!
+//! Slot semantics: `alive[t][i]` means slot `i` held an agent that observed `obs[t][i]` and took
+//! `actions[t][i]`, receiving `rewards[t][i]`; `dones[t][i]` ends that agent's episode, and a
+//! new agent may occupy the slot from `t + 1`. An agent alive and not done at `t < T - 1` is
+//! alive at `t + 1`. Agents alive and not done at `T - 1` continue in the next fragment; their
+//! value is bootstrapped from `bootstrap_obs`.
+//!
+//! Everything that crosses a process boundary is checked by [`RolloutFragment::validate`]
+//! before use: shapes, finiteness, flags and the slot invariants above.
+
+use crate::proto;
+
+/// Wire protocol version; every message carries it and peers refuse others.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Upper bounds that keep a hostile header from asking for absurd allocations.
+pub const MAX_STEPS: usize = 100_000;
+pub const MAX_AGENTS: usize = 10_000;
+pub const MAX_OBS_DIM: usize = 65_536;
+pub const MAX_ACTION_DIM: usize = 64;
+
+/// How an agent's episode ended (paper §4.2, CoPO's metrics).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Outcome {
+    Success = 0,
+    Crash = 1,
+    OutOfRoad = 2,
+    Timeout = 3,
+}
+
+impl Outcome {
+    pub const ALL: [Outcome; 4] = [Outcome::Success, Outcome::Crash, Outcome::OutOfRoad, Outcome::Timeout];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            Outcome::Success => "success",
+            Outcome::Crash => "crash",
+            Outcome::OutOfRoad => "out_of_road",
+            Outcome::Timeout => "timeout",
+        }
+    }
+
+    pub fn from_code(code: u32) -> Option<Outcome> {
+        Outcome::ALL.into_iter().find(|o| *o as u32 == code)
+    }
+}
+
+/// Statistics of one finished agent episode.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpisodeStats {
+    pub outcome: Outcome,
+    /// Decision steps the agent lived.
+    pub length: u32,
+    pub total_reward: f32,
+    /// Mean and max of |longitudinal acceleration| over the episode, m/s².
+    pub mean_abs_accel: f32,
+    pub max_abs_accel: f32,
+    pub collisions: u32,
+}
+
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RolloutFragment {
+    pub actor_id: String,
+    pub sequence: u64,
+    pub behaviour_version: u64,
+    pub scenario: String,
+    pub steps: usize,
+    pub agents: usize,
+    pub obs_dim: usize,
+    pub action_dim: usize,
+    pub obs: Vec<f32>,
+    pub actions: Vec<f32>,
+    pub log_probs: Vec<f32>,
+    pub rewards: Vec<f32>,
+    pub costs: Vec<f32>,
+    pub dones: Vec<bool>,
+    pub alive: Vec<bool>,
+    pub bootstrap_obs: Vec<f32>,
+    pub neighbour_offsets: Vec<u32>,
+    pub neighbour_ids: Vec<u32>,
+    pub episodes: Vec<EpisodeStats>,
+    pub sim_seconds: f32,
+}
+
+/// Why a fragment was refused; `reason()` is the bounded label used in metrics.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FragmentError {
+    #[error("protocol version {got} is not supported (this learner speaks {expected})")]
+    Version { got: u32, expected: u32 },
+    #[error("shape mismatch: {0}")]
+    Shape(String),
+    #[error("non-finite value (NaN or inf) in {field} at index {index}")]
+    NonFinite { field: &'static str, index: usize },
+    #[error("invalid flag byte {value} in {field} at index {index} (must be 0 or 1)")]
+    Flag { field: &'static str, index: usize, value: u8 },
+    #[error("slot invariant violated: {0}")]
+    Invariant(String),
+}
+
+impl FragmentError {
+    pub fn reason(&self) -> &'static str {
+        match self {
+            FragmentError::Version { .. } => "version",
+            FragmentError::Shape(_) => "shape",
+            FragmentError::NonFinite { .. } => "non_finite",
+            FragmentError::Flag { .. } | FragmentError::Invariant(_) => "invariant",
+        }
+    }
+}
+
+impl RolloutFragment {
+    /// Agent-steps carried (alive slot-steps).
+    pub fn agent_steps(&self) -> usize {
+        self.alive.iter().filter(|a| **a).count()
+    }
+
+    pub fn index(&self, t: usize, slot: usize) -> usize {
+        t * self.agents + slot
+    }
+
+    /// Neighbour slots of `slot` at step `t`.
+    pub fn neighbours(&self, t: usize, slot: usize) -> &[u32] {
+        let i = self.index(t, slot);
+        &self.neighbour_ids[self.neighbour_offsets[i] as usize..self.neighbour_offsets[i + 1] as usize]
+    }
+
+    /// Does slot `slot` need a bootstrap value after the last step?
+    pub fn needs_bootstrap(&self, slot: usize) -> bool {
+        let last = self.index(self.steps - 1, slot);
+        self.alive[last] && !self.dones[last]
+    }
+
+    /// Checks everything a learner relies on; `expected_dims` pins (obs_dim, action_dim).
+    pub fn validate(&self, expected_dims: Option<(usize, usize)>) -> Result<(), FragmentError> {
+        let shape = |msg: String| Err(FragmentError::Shape(msg));
+        if self.steps == 0 || self.steps > MAX_STEPS {
+            return shape(format!("steps = {} (must be 1..={MAX_STEPS})", self.steps));
+        }
+        if self.agents == 0 || self.agents > MAX_AGENTS {
+            return shape(format!("agents = {} (must be 1..={MAX_AGENTS})", self.agents));
+        }
+        if self.obs_dim == 0 || self.obs_dim > MAX_OBS_DIM {
+            return shape(format!("obs_dim = {} (must be 1..={MAX_OBS_DIM})", self.obs_dim));
+        }
+        if self.action_dim == 0 || self.action_dim > MAX_ACTION_DIM {
+            return shape(format!("action_dim = {} (must be 1..={MAX_ACTION_DIM})", self.action_dim));
+        }
+        if let Some((obs_dim, action_dim)) = expected_dims {
+            if (self.obs_dim, self.action_dim) != (obs_dim, action_dim) {
+                return shape(format!(
+                    "obs_dim × action_dim = {} × {}, the run expects {obs_dim} × {action_dim}",
+                    self.obs_dim, self.action_dim
+                ));
+            }
+        }
+        // Bounded by the MAX_* constants above, so these products cannot overflow.
+        let cells = self.steps * self.agents;
+        let lengths: [(&str, usize, usize); 9] = [
+            ("obs", self.obs.len(), cells * self.obs_dim),
+            ("actions", self.actions.len(), cells * self.action_dim),
+            ("log_probs", self.log_probs.len(), cells),
+            ("rewards", self.rewards.len(), cells),
+            ("costs", self.costs.len(), cells),
+            ("dones", self.dones.len(), cells),
+            ("alive", self.alive.len(), cells),
+            ("bootstrap_obs", self.bootstrap_obs.len(), self.agents * self.obs_dim),
+            ("neighbour_offsets", self.neighbour_offsets.len(), cells + 1),
+        ];
+        for (field, got, want) in lengths {
+            if got != want {
+                return shape(format!(
+                    "{field} has {got} values, expected {want} for {} steps × {} agents",
+                    self.steps, self.agents
+                ));
+            }
+        }
+        let floats: [(&'static str, &[f32]); 6] = [
+            ("obs", &self.obs),
+            ("actions", &self.actions),
+            ("log_probs", &self.log_probs),
+            ("rewards", &self.rewards),
+            ("costs", &self.costs),
+            ("bootstrap_obs", &self.bootstrap_obs),
+        ];
+        for (field, values) in floats {
+            if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+                return Err(FragmentError::NonFinite { field, index });
+            }
+        }
+        if !self.sim_seconds.is_finite() || self.sim_seconds < 0.0 {
+            return Err(FragmentError::NonFinite { field: "sim_seconds", index: 0 });
+        }
+        for (i, (&done, &alive)) in self.dones.iter().zip(&self.alive).enumerate() {
+            if done && !alive {
+                return Err(FragmentError::Invariant(format!(
+                    "step {} slot {} is done but not alive",
+                    i / self.agents,
+                    i % self.agents
+                )));
+            }
+        }
+        for t in 0..self.steps - 1 {
+            for slot in 0..self.agents {
+                let (now, next) = (self.index(t, slot), self.index(t + 1, slot));
+                if self.alive[now] && !self.dones[now] && !self.alive[next] {
+                    return Err(FragmentError::Invariant(format!(
+                        "slot {slot} is alive and not done at step {t} but not alive at step {}",
+                        t + 1
+                    )));
+                }
+            }
+        }
+        if self.neighbour_offsets[0] != 0 {
+            return Err(FragmentError::Invariant("neighbour_offsets must start at 0".into()));
+        }
+        if self.neighbour_offsets.windows(2).any(|w| w[1] < w[0]) {
+            return Err(FragmentError::Invariant("neighbour_offsets must not decrease".into()));
+        }
+        if self.neighbour_offsets[cells] as usize != self.neighbour_ids.len() {
+            return shape(format!(
+                "neighbour_offsets ends at {}, but there are {} neighbour_ids",
+                self.neighbour_offsets[cells],
+                self.neighbour_ids.len()
+            ));
+        }
+        if let Some(bad) = self.neighbour_ids.iter().find(|&&id| id as usize >= self.agents) {
+            return Err(FragmentError::Invariant(format!(
+                "neighbour id {bad} is not a slot (agents = {})",
+                self.agents
+            )));
+        }
+        for (i, e) in self.episodes.iter().enumerate() {
+            let values = [e.total_reward, e.mean_abs_accel, e.max_abs_accel];
+            if values.iter().any(|v| !v.is_finite()) {
+                return Err(FragmentError::NonFinite { field: "episodes", index: i });
+            }
+        }
+        Ok(())
+    }
+
+    /// Decodes and validates a fragment received from the network.
+    pub fn from_proto(
+        msg: proto::RolloutFragment,
+        expected_dims: Option<(usize, usize)>,
+    ) -> Result<Self, FragmentError> {
+        if msg.protocol_version != PROTOCOL_VERSION {
+            return Err(FragmentError::Version {
+                got: msg.protocol_version,
+                expected: PROTOCOL_VERSION,
+            });
+        }
+        let dones = flags("dones", &msg.dones)?;
+        let alive = flags("alive", &msg.alive)?;
+        let episodes = msg
+            .episodes
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let outcome = Outcome::from_code(e.outcome).ok_or_else(|| {
+                    FragmentError::Invariant(format!("episode {i} has unknown outcome {}", e.outcome))
+                })?;
+                Ok(EpisodeStats {
+                    outcome,
+                    length: e.length,
+                    total_reward: e.total_reward,
+                    mean_abs_accel: e.mean_abs_accel,
+                    max_abs_accel: e.max_abs_accel,
+                    collisions: e.collisions,
+                })
+            })
+            .collect::<Result<Vec<_>, FragmentError>>()?;
+        let fragment = RolloutFragment {
+            actor_id: msg.actor_id,
+            sequence: msg.sequence,
+            behaviour_version: msg.behaviour_version,
+            scenario: msg.scenario,
+            steps: msg.steps as usize,
+            agents: msg.agents as usize,
+            obs_dim: msg.obs_dim as usize,
+            action_dim: msg.action_dim as usize,
+            obs: msg.obs,
+            actions: msg.actions,
+            log_probs: msg.log_probs,
+            rewards: msg.rewards,
+            costs: msg.costs,
+            dones,
+            alive,
+            bootstrap_obs: msg.bootstrap_obs,
+            neighbour_offsets: msg.neighbour_offsets,
+            neighbour_ids: msg.neighbour_ids,
+            episodes,
+            sim_seconds: msg.sim_seconds,
+        };
+        fragment.validate(expected_dims)?;
+        Ok(fragment)
+    }
+
+    pub fn into_proto(self) -> proto::RolloutFragment {
+        let bytes = |v: Vec<bool>| v.into_iter().map(u8::from).collect::<Vec<u8>>();
+        proto::RolloutFragment {
+            protocol_version: PROTOCOL_VERSION,
+            actor_id: self.actor_id,
+            sequence: self.sequence,
+            behaviour_version: self.behaviour_version,
+            scenario: self.scenario,
+            steps: self.steps as u32,
+            agents: self.agents as u32,
+            obs_dim: self.obs_dim as u32,
+            action_dim: self.action_dim as u32,
+            obs: self.obs,
+            actions: self.actions,
+            log_probs: self.log_probs,
+            rewards: self.rewards,
+            costs: self.costs,
+            dones: bytes(self.dones),
+            alive: bytes(self.alive),
+            bootstrap_obs: self.bootstrap_obs,
+            neighbour_offsets: self.neighbour_offsets,
+            neighbour_ids: self.neighbour_ids,
+            episodes: self
+                .episodes
+                .iter()
+                .map(|e| proto::EpisodeStats {
+                    outcome: e.outcome as u32,
+                    length: e.length,
+                    total_reward: e.total_reward,
+                    mean_abs_accel: e.mean_abs_accel,
+                    max_abs_accel: e.max_abs_accel,
+                    collisions: e.collisions,
+                })
+                .collect(),
+            sim_seconds: self.sim_seconds,
+        }
+    }
+}
+
+fn flags(field: &'static str, bytes: &[u8]) -> Result<Vec<bool>, FragmentError> {
+    bytes
+        .iter()
+        .enumerate()
+        .map(|(index, &value)| match value {
+            0 => Ok(false),
+            1 => Ok(true),
+            _ => Err(FragmentError::Flag { field, index, value }),
+        })
+        .collect()
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// A small valid fragment: 3 steps × 2 slots; slot 0 finishes at step 1 and a new agent
+    /// takes the slot at step 2; slot 1 lives throughout.
+    pub(crate) fn sample() -> RolloutFragment {
+        let (steps, agents, obs_dim, action_dim) = (3, 2, 4, 2);
+        let cells = steps * agents;
+        RolloutFragment {
+            actor_id: "actor-1".into(),
+            sequence: 7,
+            behaviour_version: 3,
+            scenario: "intersection".into(),
+            steps,
+            agents,
+            obs_dim,
+            action_dim,
+            obs: (0..cells * obs_dim).map(|i| i as f32 / 100.0).collect(),
+            actions: (0..cells * action_dim).map(|i| (i as f32 - 5.0) / 4.0).collect(),
+            log_probs: (0..cells).map(|i| -(i as f32)).collect(),
+            rewards: vec![0.5, 1.0, 10.0, 1.5, 0.25, 2.0],
+            costs: vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            dones: vec![false, false, true, false, false, false],
+            alive: vec![true, true, true, true, true, true],
+            bootstrap_obs: vec![0.1; agents * obs_dim],
+            neighbour_offsets: vec![0, 1, 2, 3, 4, 4, 4],
+            neighbour_ids: vec![1, 0, 1, 0],
+            episodes: vec![EpisodeStats {
+                outcome: Outcome::Success,
+                length: 2,
+                total_reward: 10.5,
+                mean_abs_accel: 0.7,
+                max_abs_accel: 1.9,
+                collisions: 0,
+            }],
+            sim_seconds: 0.3,
+        }
+    }
+
+    #[test]
+    fn protobuf_round_trip_is_lossless() {
+        use prost::Message;
+        let fragment = sample();
+        let bytes = fragment.clone().into_proto().encode_to_vec();
+        let decoded = proto::RolloutFragment::decode(bytes.as_slice()).unwrap();
+        assert_eq!(RolloutFragment::from_proto(decoded, Some((4, 2))).unwrap(), fragment);
+    }
+
+    #[test]
+    fn rejects_wrong_shapes_nan_versions_and_broken_invariants() {
+        let mut p = sample().into_proto();
+        p.protocol_version = 99;
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "version"
+        );
+
+        let mut p = sample().into_proto();
+        p.obs.pop();
+        let err = RolloutFragment::from_proto(p, None).unwrap_err();
+        assert_eq!(err.reason(), "shape");
+        assert!(err.to_string().contains("obs has 23 values, expected 24"), "{err}");
+
+        let mut p = sample().into_proto();
+        p.rewards[4] = f32::NAN;
+        let err = RolloutFragment::from_proto(p, None).unwrap_err();
+        assert_eq!(err, FragmentError::NonFinite { field: "rewards", index: 4 });
+
+        let mut p = sample().into_proto();
+        p.actions[0] = f32::INFINITY;
+        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "non_finite");
+
+        let mut p = sample().into_proto();
+        p.dones[1] = 2;
+        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "invariant");
+
+        // Slot 1 vanishes at step 1 without having been done.
+        let mut p = sample().into_proto();
+        p.alive[3] = 0;
+        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "invariant");
+
+        let mut p = sample().into_proto();
+        p.neighbour_ids[0] = 2;
+        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "invariant");
+
+        // Dimensions other than the run's are refused even when self-consistent.
+        assert_eq!(
+            RolloutFragment::from_proto(sample().into_proto(), Some((91, 2))).unwrap_err().reason(),
+            "shape"
+        );
+
+        // A header asking for absurd sizes is refused before anything is allocated for it.
+        let mut p = sample().into_proto();
+        p.steps = u32::MAX;
+        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "shape");
+    }
+
+    #[test]
+    fn bootstrap_and_neighbour_accessors_follow_the_slot_semantics() {
+        let f = sample();
+        assert_eq!(f.agent_steps(), 6);
+        assert!(f.needs_bootstrap(0) && f.needs_bootstrap(1));
+        assert_eq!(f.neighbours(0, 0), &[1]);
+        assert_eq!(f.neighbours(2, 1), &[] as &[u32]);
+    }
+}
