@@ -4,7 +4,10 @@
 
 pub mod config;
 pub mod fragment;
+pub mod policy;
 pub mod spec;
+pub mod telemetry;
+pub mod weights;
 
 /// Code generated from `proto/junction.proto` (package `junction.v1`).
 pub mod proto {

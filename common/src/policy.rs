@@ -1,0 +1,327 @@
+//! The shared policy: a diagonal Gaussian over actions from an MLP, with the observation
+//! normaliser's statistics stored beside the weights so actors normalise exactly as the learner
+//! trained. One parameter set serves every agent (parameter sharing).
+
+use std::collections::HashMap;
+
+use tch::nn::{self, Module};
+use tch::{Device, Kind, Tensor};
+
+use crate::spec::OBS_LAYOUT_VERSION;
+use crate::weights::{self, Decoded, WeightsError};
+
+/// Normalised observations are clipped to ± this many standard deviations.
+const OBS_CLIP: f64 = 10.0;
+const OBS_VAR_EPS: f64 = 1e-8;
+
+/// An MLP with tanh hidden activations and orthogonal initialisation (gain √2 on hidden
+/// layers, `out_gain` on the output layer, zero biases), as in well-tuned PPO implementations.
+#[derive(Debug)]
+pub struct Mlp {
+    layers: Vec<nn::Linear>,
+}
+
+impl Mlp {
+    pub fn new(path: nn::Path, in_dim: i64, hidden: &[i64], out_dim: i64, out_gain: f64) -> Self {
+        let mut layers = Vec::with_capacity(hidden.len() + 1);
+        let mut width = in_dim;
+        let sizes = hidden.iter().copied().chain(std::iter::once(out_dim));
+        for (i, size) in sizes.enumerate() {
+            let gain = if i == hidden.len() { out_gain } else { std::f64::consts::SQRT_2 };
+            let config = nn::LinearConfig {
+                ws_init: nn::Init::Orthogonal { gain },
+                bs_init: Some(nn::Init::Const(0.0)),
+                bias: true,
+            };
+            layers.push(nn::linear(&path / format!("l{i}"), width, size, config));
+            width = size;
+        }
+        Mlp { layers }
+    }
+}
+
+impl Module for Mlp {
+    fn forward(&self, x: &Tensor) -> Tensor {
+        let last = self.layers.len() - 1;
+        self.layers.iter().enumerate().fold(x.shallow_clone(), |h, (i, layer)| {
+            let h = layer.forward(&h);
+            if i == last { h } else { h.tanh() }
+        })
+    }
+}
+
+/// Running mean and variance of observations (Chan et al.'s parallel update), in f64.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObsNormalizer {
+    pub mean: Vec<f64>,
+    pub var: Vec<f64>,
+    pub count: f64,
+}
+
+impl ObsNormalizer {
+    pub fn new(dim: usize) -> Self {
+        ObsNormalizer { mean: vec![0.0; dim], var: vec![1.0; dim], count: 0.0 }
+    }
+
+    /// Folds in `rows` (row-major, `mean.len()` values each).
+    pub fn update(&mut self, rows: &[f32]) {
+        let dim = self.mean.len();
+        let n = (rows.len() / dim) as f64;
+        if n == 0.0 {
+            return;
+        }
+        let mut batch_mean = vec![0.0f64; dim];
+        for row in rows.chunks_exact(dim) {
+            for (m, &x) in batch_mean.iter_mut().zip(row) {
+                *m += x as f64;
+            }
+        }
+        batch_mean.iter_mut().for_each(|m| *m /= n);
+        let mut batch_var = vec![0.0f64; dim];
+        for row in rows.chunks_exact(dim) {
+            for ((v, &x), m) in batch_var.iter_mut().zip(row).zip(&batch_mean) {
+                *v += (x as f64 - m).powi(2);
+            }
+        }
+        batch_var.iter_mut().for_each(|v| *v /= n);
+        let total = self.count + n;
+        for i in 0..dim {
+            let delta = batch_mean[i] - self.mean[i];
+            let m2 = self.var[i] * self.count + batch_var[i] * n + delta * delta * self.count * n / total;
+            self.mean[i] += delta * n / total;
+            self.var[i] = m2 / total;
+        }
+        self.count = total;
+    }
+}
+
+/// Version and layout of a weights blob.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PolicyMeta {
+    pub version: u64,
+    pub obs_layout_version: u32,
+}
+
+#[derive(Debug)]
+pub struct GaussianPolicy {
+    vs: nn::VarStore,
+    net: Mlp,
+    log_std: Tensor,
+    obs_mean: Tensor,
+    obs_var: Tensor,
+    obs_count: Tensor,
+    obs_dim: i64,
+    action_dim: i64,
+    hidden: Vec<i64>,
+}
+
+impl GaussianPolicy {
+    pub fn new(device: Device, obs_dim: i64, action_dim: i64, hidden: &[i64], init_log_std: f64) -> Self {
+        let vs = nn::VarStore::new(device);
+        let root = vs.root();
+        let net = Mlp::new(&root / "policy", obs_dim, hidden, action_dim, 0.01);
+        let log_std = root.var("policy_log_std", &[action_dim], nn::Init::Const(init_log_std));
+        let norm = &root / "obs_norm";
+        let obs_mean = norm.zeros_no_train("mean", &[obs_dim]);
+        let obs_var = norm.ones_no_train("var", &[obs_dim]);
+        let obs_count = norm.zeros_no_train("count", &[1]);
+        GaussianPolicy {
+            vs,
+            net,
+            log_std,
+            obs_mean,
+            obs_var,
+            obs_count,
+            obs_dim,
+            action_dim,
+            hidden: hidden.to_vec(),
+        }
+    }
+
+    pub fn obs_dim(&self) -> usize {
+        self.obs_dim as usize
+    }
+
+    pub fn action_dim(&self) -> usize {
+        self.action_dim as usize
+    }
+
+    pub fn device(&self) -> Device {
+        self.vs.device()
+    }
+
+    /// Parameters the optimiser trains (network and log-std; not the normaliser).
+    pub fn trainable(&self) -> Vec<Tensor> {
+        self.vs.trainable_variables()
+    }
+
+    pub fn set_obs_stats(&mut self, stats: &ObsNormalizer) {
+        let to = |v: &[f64]| Tensor::from_slice(v).to_kind(Kind::Float).to_device(self.vs.device());
+        tch::no_grad(|| {
+            self.obs_mean.copy_(&to(&stats.mean));
+            self.obs_var.copy_(&to(&stats.var));
+            self.obs_count.copy_(&to(&[stats.count]));
+        });
+    }
+
+    pub fn obs_stats(&self) -> Result<ObsNormalizer, WeightsError> {
+        let host = |t: &Tensor| -> Result<Vec<f64>, WeightsError> {
+            Ok(Vec::<f32>::try_from(t.to_device(Device::Cpu))?.into_iter().map(f64::from).collect())
+        };
+        Ok(ObsNormalizer {
+            mean: host(&self.obs_mean)?,
+            var: host(&self.obs_var)?,
+            count: host(&self.obs_count)?.first().copied().unwrap_or(0.0),
+        })
+    }
+
+    /// (obs − mean) / std, clipped: what the network sees.
+    pub fn normalize(&self, obs: &Tensor) -> Tensor {
+        ((obs - &self.obs_mean) / (&self.obs_var + OBS_VAR_EPS).sqrt()).clamp(-OBS_CLIP, OBS_CLIP)
+    }
+
+    /// Mean action and log-std (broadcast to the batch) for normalised observations.
+    pub fn distribution(&self, obs_normalized: &Tensor) -> (Tensor, Tensor) {
+        let mean = self.net.forward(obs_normalized);
+        let log_std = self.log_std.expand_as(&mean);
+        (mean, log_std)
+    }
+
+    /// Batched inference for actors: `obs` row-major [rows][obs_dim]; `noise` [rows][action_dim]
+    /// standard normal draws (all zero gives the mean action). Returns actions and their
+    /// log-probabilities under this policy.
+    pub fn act(&self, obs: &[f32], noise: &[f32]) -> Result<(Vec<f32>, Vec<f32>), WeightsError> {
+        let rows = (obs.len() / self.obs_dim as usize) as i64;
+        tch::no_grad(|| {
+            let device = self.vs.device();
+            let obs = Tensor::from_slice(obs).reshape([rows, self.obs_dim]).to_device(device);
+            let noise = Tensor::from_slice(noise).reshape([rows, self.action_dim]).to_device(device);
+            let (mean, log_std) = self.distribution(&self.normalize(&obs));
+            let actions = &mean + log_std.exp() * noise;
+            let log_probs = gaussian_log_prob(&mean, &log_std, &actions);
+            let actions = Vec::<f32>::try_from(actions.to_device(Device::Cpu).flatten(0, -1))?;
+            let log_probs = Vec::<f32>::try_from(log_probs.to_device(Device::Cpu))?;
+            Ok((actions, log_probs))
+        })
+    }
+
+    /// Every variable by name (for checkpoints and the wire).
+    pub fn named_tensors(&self) -> Vec<(String, Tensor)> {
+        weights::var_store_tensors(&self.vs)
+    }
+
+    /// The weights blob broadcast to actors and stored in checkpoints.
+    pub fn to_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        let named = self.named_tensors();
+        let refs: Vec<(String, &Tensor)> = named.iter().map(|(n, t)| (n.clone(), t)).collect();
+        let hidden = self.hidden.iter().map(i64::to_string).collect::<Vec<_>>().join(",");
+        let metadata = HashMap::from([
+            ("version".to_string(), version.to_string()),
+            ("obs_layout_version".to_string(), OBS_LAYOUT_VERSION.to_string()),
+            ("obs_dim".to_string(), self.obs_dim.to_string()),
+            ("action_dim".to_string(), self.action_dim.to_string()),
+            ("hidden".to_string(), hidden),
+        ]);
+        weights::encode(&refs, metadata)
+    }
+
+    /// Rebuilds a policy from a blob; the architecture comes from the blob's metadata and every
+    /// tensor's shape is checked, so a malformed blob is an error, never a panic.
+    pub fn from_bytes(bytes: &[u8], device: Device) -> Result<(Self, PolicyMeta), WeightsError> {
+        let mut decoded = Decoded::decode(bytes)?;
+        let meta = PolicyMeta {
+            version: decoded.meta("version")?,
+            obs_layout_version: decoded.meta("obs_layout_version")?,
+        };
+        let obs_dim: i64 = decoded.meta("obs_dim")?;
+        let action_dim: i64 = decoded.meta("action_dim")?;
+        let hidden_text: String = decoded.meta("hidden")?;
+        let hidden = hidden_text
+            .split(',')
+            .map(|h| h.parse::<i64>().ok().filter(|&h| h > 0 && h <= 1 << 16))
+            .collect::<Option<Vec<i64>>>()
+            .filter(|h| !h.is_empty())
+            .ok_or_else(|| WeightsError::Metadata { key: "hidden".into() })?;
+        let dims_ok = |d: i64, max: usize| d > 0 && d as usize <= max;
+        if !dims_ok(obs_dim, crate::fragment::MAX_OBS_DIM)
+            || !dims_ok(action_dim, crate::fragment::MAX_ACTION_DIM)
+        {
+            return Err(WeightsError::Metadata { key: "obs_dim/action_dim".into() });
+        }
+        let policy = GaussianPolicy::new(device, obs_dim, action_dim, &hidden, 0.0);
+        weights::load_var_store(&policy.vs, &mut decoded)?;
+        Ok((policy, meta))
+    }
+
+    /// Loads a blob into this policy (same architecture), e.g. when resuming.
+    pub fn load_bytes(&mut self, bytes: &[u8]) -> Result<PolicyMeta, WeightsError> {
+        let mut decoded = Decoded::decode(bytes)?;
+        let meta = PolicyMeta {
+            version: decoded.meta("version")?,
+            obs_layout_version: decoded.meta("obs_layout_version")?,
+        };
+        weights::load_var_store(&self.vs, &mut decoded)?;
+        Ok(meta)
+    }
+}
+
+/// log N(actions | mean, exp(log_std)), summed over action dimensions.
+pub fn gaussian_log_prob(mean: &Tensor, log_std: &Tensor, actions: &Tensor) -> Tensor {
+    let z = (actions - mean) / log_std.exp();
+    let per_dim = z.square() * -0.5 - log_std - 0.5 * (2.0 * std::f64::consts::PI).ln();
+    per_dim.sum_dim_intlist(-1, false, Kind::Float)
+}
+
+/// Entropy of the diagonal Gaussian, summed over action dimensions.
+pub fn gaussian_entropy(log_std: &Tensor) -> Tensor {
+    (log_std + 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln())).sum_dim_intlist(-1, false, Kind::Float)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn normalizer_matches_two_pass_statistics() {
+        let rows: Vec<f32> = vec![1.0, 10.0, 2.0, 20.0, 3.0, 30.0, 4.0, 40.0, 5.0, 50.0];
+        let mut n = ObsNormalizer::new(2);
+        n.update(&rows[..4]);
+        n.update(&rows[4..]);
+        assert_eq!(n.count, 5.0);
+        assert!((n.mean[0] - 3.0).abs() < 1e-12 && (n.mean[1] - 30.0).abs() < 1e-12);
+        // Population variance of 1..5 is 2.
+        assert!((n.var[0] - 2.0).abs() < 1e-12 && (n.var[1] - 200.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn log_prob_matches_closed_form() {
+        let mean = Tensor::from_slice(&[0.0f32, 1.0]).reshape([1, 2]);
+        let log_std = Tensor::from_slice(&[0.0f32, (2.0f32).ln()]).reshape([1, 2]);
+        let a = Tensor::from_slice(&[1.0f32, 1.0]).reshape([1, 2]);
+        let lp = f64::try_from(gaussian_log_prob(&mean, &log_std, &a).sum(Kind::Float)).unwrap();
+        let ln2pi = (2.0 * std::f64::consts::PI).ln();
+        let expected = (-0.5 - 0.5 * ln2pi) + (-(2.0f64).ln() - 0.5 * ln2pi);
+        assert!((lp - expected).abs() < 1e-5, "{lp} vs {expected}");
+        let h = f64::try_from(gaussian_entropy(&log_std).sum(Kind::Float)).unwrap();
+        assert!((h - (ln2pi + 1.0 + (2.0f64).ln())).abs() < 1e-5);
+    }
+
+    #[test]
+    fn weights_round_trip_reproduce_actions_and_reject_other_shapes() {
+        tch::manual_seed(3);
+        let mut p = GaussianPolicy::new(Device::Cpu, 5, 2, &[8, 8], -0.5);
+        let mut stats = ObsNormalizer::new(5);
+        stats.update(&[0.0, 1.0, 2.0, 3.0, 4.0, 1.0, 1.0, 1.0, 1.0, 1.0]);
+        p.set_obs_stats(&stats);
+        let obs = [0.1f32, 0.2, 0.3, 0.4, 0.5, 0.9, 0.8, 0.7, 0.6, 0.5];
+        let noise = [0.3f32, -1.0, 0.0, 2.0];
+        let before = p.act(&obs, &noise).unwrap();
+        let bytes = p.to_bytes(42).unwrap();
+        let (q, meta) = GaussianPolicy::from_bytes(&bytes, Device::Cpu).unwrap();
+        assert_eq!(meta, PolicyMeta { version: 42, obs_layout_version: OBS_LAYOUT_VERSION });
+        assert_eq!(q.act(&obs, &noise).unwrap(), before);
+        assert_eq!(q.obs_stats().unwrap().count, 2.0);
+        let mut other = GaussianPolicy::new(Device::Cpu, 5, 2, &[16], 0.0);
+        assert!(matches!(other.load_bytes(&bytes), Err(WeightsError::Missing(_) | WeightsError::Shape { .. })));
+    }
+}

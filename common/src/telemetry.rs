@@ -1,0 +1,138 @@
+//! Logs and the Prometheus `/metrics` endpoint, shared by both binaries.
+
+use std::convert::Infallible;
+use std::future::Future;
+
+use http_body_util::Full;
+use hyper::body::{Bytes, Incoming};
+use hyper::{Request, Response, StatusCode};
+use prometheus::{Encoder, Registry, TextEncoder};
+
+/// Metric names, in one place so dashboards, tests and code agree. Prometheus conventions:
+/// `junction_` prefix, base units, `_total` on counters.
+pub mod names {
+    pub const LEARNER_POLICY_VERSION: &str = "junction_learner_policy_version";
+    pub const LEARNER_AGENT_STEPS: &str = "junction_learner_agent_steps_total";
+    pub const LEARNER_ENV_STEPS: &str = "junction_learner_env_steps_total";
+    pub const LEARNER_FRAGMENTS: &str = "junction_learner_fragments_total";
+    pub const LEARNER_FRAGMENTS_REJECTED: &str = "junction_learner_fragments_rejected_total";
+    pub const LEARNER_FRAGMENTS_DROPPED: &str = "junction_learner_fragments_dropped_total";
+    pub const LEARNER_SAMPLES_TRAINED: &str = "junction_learner_samples_trained_total";
+    pub const LEARNER_UPDATES: &str = "junction_learner_updates_total";
+    pub const LEARNER_UPDATE_SECONDS: &str = "junction_learner_update_duration_seconds";
+    pub const LEARNER_CONNECTED_ACTORS: &str = "junction_learner_connected_actors";
+    pub const LEARNER_QUEUE_FRAGMENTS: &str = "junction_learner_ingest_queue_fragments";
+    pub const LEARNER_TRANSPORT_BYTES: &str = "junction_learner_transport_received_bytes_total";
+    pub const LEARNER_EPISODES: &str = "junction_learner_episodes_total";
+    pub const LEARNER_SUCCESS_RATE: &str = "junction_learner_success_rate";
+    pub const LEARNER_CRASH_RATE: &str = "junction_learner_crash_rate";
+    pub const LEARNER_OUT_OF_ROAD_RATE: &str = "junction_learner_out_of_road_rate";
+    pub const LEARNER_EPISODE_REWARD_MEAN: &str = "junction_learner_episode_reward_mean";
+    pub const LEARNER_EPISODE_LENGTH_MEAN: &str = "junction_learner_episode_length_mean";
+    pub const LEARNER_POLICY_LOSS: &str = "junction_learner_policy_loss";
+    pub const LEARNER_VALUE_LOSS: &str = "junction_learner_value_loss";
+    pub const LEARNER_ENTROPY: &str = "junction_learner_entropy";
+    pub const LEARNER_APPROX_KL: &str = "junction_learner_approx_kl";
+    pub const LEARNER_CLIP_FRACTION: &str = "junction_learner_clip_fraction";
+    pub const LEARNER_EXPLAINED_VARIANCE: &str = "junction_learner_explained_variance";
+    pub const LEARNER_GRAD_NORM: &str = "junction_learner_grad_norm";
+
+    pub const ACTOR_ENV_STEPS: &str = "junction_actor_env_steps_total";
+    pub const ACTOR_AGENT_STEPS: &str = "junction_actor_agent_steps_total";
+    pub const ACTOR_FRAGMENTS_SENT: &str = "junction_actor_fragments_sent_total";
+    pub const ACTOR_POLICY_VERSION: &str = "junction_actor_policy_version";
+    pub const ACTOR_POLICY_SWITCHES: &str = "junction_actor_policy_switches_total";
+    pub const ACTOR_INFERENCE_SECONDS: &str = "junction_actor_inference_seconds_total";
+    pub const ACTOR_SIMULATION_SECONDS: &str = "junction_actor_simulation_seconds_total";
+}
+
+/// `--log-format` of both binaries (parsed by clap through `FromStr`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LogFormat {
+    #[default]
+    Pretty,
+    Json,
+}
+
+impl std::str::FromStr for LogFormat {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "pretty" => Ok(LogFormat::Pretty),
+            "json" => Ok(LogFormat::Json),
+            other => Err(format!("unknown log format {other:?} (use pretty or json)")),
+        }
+    }
+}
+
+/// Installs the global `tracing` subscriber; `RUST_LOG` filters (default `info`).
+pub fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    // A second init (e.g. in tests) keeps the first subscriber.
+    let _ = match format {
+        LogFormat::Pretty => builder.try_init(),
+        LogFormat::Json => builder.json().with_current_span(true).try_init(),
+    };
+}
+
+/// Serves `GET /metrics` (Prometheus text format) until `shutdown` completes.
+pub async fn serve_metrics(
+    listener: tokio::net::TcpListener,
+    registry: Registry,
+    shutdown: impl Future<Output = ()>,
+) {
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            () = &mut shutdown => return,
+        };
+        let stream = match accepted {
+            Ok((stream, _)) => stream,
+            Err(e) => {
+                // Out of file descriptors and the like: keep serving once it passes.
+                tracing::warn!(error = %e, "metrics endpoint: accept failed");
+                tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        let registry = registry.clone();
+        tokio::spawn(async move {
+            let service = hyper::service::service_fn(move |request: Request<Incoming>| {
+                let response = respond(&registry, &request);
+                async move { Ok::<_, Infallible>(response) }
+            });
+            let io = hyper_util::rt::TokioIo::new(stream);
+            if let Err(e) = hyper::server::conn::http1::Builder::new().serve_connection(io, service).await {
+                tracing::debug!(error = %e, "metrics connection ended with an error");
+            }
+        });
+    }
+}
+
+fn respond(registry: &Registry, request: &Request<Incoming>) -> Response<Full<Bytes>> {
+    let reply = |status: StatusCode, content_type: &str, body: Vec<u8>| {
+        let mut response = Response::new(Full::new(Bytes::from(body)));
+        *response.status_mut() = status;
+        if let Ok(value) = content_type.parse() {
+            response.headers_mut().insert(hyper::header::CONTENT_TYPE, value);
+        }
+        response
+    };
+    match (request.method(), request.uri().path()) {
+        (&hyper::Method::GET, "/metrics") => {
+            let encoder = TextEncoder::new();
+            let mut body = Vec::new();
+            match encoder.encode(&registry.gather(), &mut body) {
+                Ok(()) => reply(StatusCode::OK, encoder.format_type(), body),
+                Err(e) => reply(StatusCode::INTERNAL_SERVER_ERROR, "text/plain", e.to_string().into_bytes()),
+            }
+        }
+        (&hyper::Method::GET, "/") => {
+            reply(StatusCode::OK, "text/plain", b"Junction: metrics at /metrics\n".to_vec())
+        }
+        _ => reply(StatusCode::NOT_FOUND, "text/plain", b"not found\n".to_vec()),
+    }
+}

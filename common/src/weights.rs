@@ -1,0 +1,159 @@
+//! Named f32 tensors <-> safetensors bytes: the one format for weights on the wire and in
+//! checkpoints (policy, critics, optimiser state).
+
+use std::collections::HashMap;
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use tch::{Device, Kind, Tensor};
+
+#[derive(Debug, thiserror::Error)]
+pub enum WeightsError {
+    #[error("not a valid safetensors blob: {0}")]
+    Format(String),
+    #[error("tensor {name:?} has dtype {dtype}, only F32 is supported")]
+    Dtype { name: String, dtype: String },
+    #[error("tensor {0:?} is missing")]
+    Missing(String),
+    #[error("tensor {name:?} has shape {got:?}, expected {expected:?}")]
+    Shape { name: String, got: Vec<i64>, expected: Vec<i64> },
+    #[error("tensor {name:?} holds a NaN or infinite value")]
+    NonFinite { name: String },
+    #[error("metadata {key:?} is missing or invalid")]
+    Metadata { key: String },
+    #[error("torch: {0}")]
+    Torch(#[from] tch::TchError),
+}
+
+/// Encodes tensors (any device; stored as CPU f32, sorted by name) plus string metadata.
+pub fn encode(
+    tensors: &[(String, &Tensor)],
+    metadata: HashMap<String, String>,
+) -> Result<Vec<u8>, WeightsError> {
+    let mut host: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::with_capacity(tensors.len());
+    for (name, tensor) in tensors {
+        let cpu = tensor.detach().to_device(Device::Cpu).to_kind(Kind::Float).contiguous();
+        let shape: Vec<usize> = cpu.size().iter().map(|&d| d as usize).collect();
+        let values = Vec::<f32>::try_from(cpu.flatten(0, -1))?;
+        let bytes = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        host.push((name.clone(), shape, bytes));
+    }
+    host.sort_by(|a, b| a.0.cmp(&b.0));
+    let views = host
+        .iter()
+        .map(|(name, shape, bytes)| {
+            TensorView::new(Dtype::F32, shape.clone(), bytes)
+                .map(|view| (name.clone(), view))
+                .map_err(|e| WeightsError::Format(format!("{e:?}")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    safetensors::tensor::serialize(views, &Some(metadata))
+        .map_err(|e| WeightsError::Format(format!("{e:?}")))
+}
+
+/// Decoded blob: CPU tensors by name, and the metadata.
+pub struct Decoded {
+    pub tensors: HashMap<String, Tensor>,
+    pub metadata: HashMap<String, String>,
+}
+
+impl Decoded {
+    pub fn decode(bytes: &[u8]) -> Result<Self, WeightsError> {
+        let st = SafeTensors::deserialize(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
+        let (_, header) =
+            SafeTensors::read_metadata(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
+        let metadata = header.metadata().clone().unwrap_or_default();
+        let mut tensors = HashMap::new();
+        for (name, view) in st.tensors() {
+            if view.dtype() != Dtype::F32 {
+                return Err(WeightsError::Dtype { name, dtype: format!("{:?}", view.dtype()) });
+            }
+            let values: Vec<f32> = view
+                .data()
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            if values.iter().any(|v| !v.is_finite()) {
+                return Err(WeightsError::NonFinite { name });
+            }
+            let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
+            tensors.insert(name, Tensor::from_slice(&values).reshape(&shape));
+        }
+        Ok(Decoded { tensors, metadata })
+    }
+
+    /// The tensor `name`, checked against `expected` shape.
+    pub fn take(&mut self, name: &str, expected: &[i64]) -> Result<Tensor, WeightsError> {
+        let t = self.tensors.remove(name).ok_or_else(|| WeightsError::Missing(name.to_string()))?;
+        if t.size() != expected {
+            return Err(WeightsError::Shape {
+                name: name.to_string(),
+                got: t.size(),
+                expected: expected.to_vec(),
+            });
+        }
+        Ok(t)
+    }
+
+    pub fn meta<T: std::str::FromStr>(&self, key: &str) -> Result<T, WeightsError> {
+        self.metadata
+            .get(key)
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| WeightsError::Metadata { key: key.to_string() })
+    }
+}
+
+/// Copies every variable of `vs` from `decoded` (shapes checked), without tracking gradients.
+pub fn load_var_store(vs: &tch::nn::VarStore, decoded: &mut Decoded) -> Result<(), WeightsError> {
+    let mut variables: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    variables.sort_by(|a, b| a.0.cmp(&b.0));
+    // Check everything before changing anything, so a bad blob leaves the store intact.
+    let mut sources = Vec::with_capacity(variables.len());
+    for (name, var) in &variables {
+        sources.push(decoded.take(name, &var.size())?);
+    }
+    tch::no_grad(|| {
+        for ((_, mut var), src) in variables.into_iter().zip(sources) {
+            var.copy_(&src);
+        }
+    });
+    Ok(())
+}
+
+/// Every variable of `vs` as (name, tensor), for [`encode`].
+pub fn var_store_tensors(vs: &tch::nn::VarStore) -> Vec<(String, Tensor)> {
+    let mut variables: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    variables.sort_by(|a, b| a.0.cmp(&b.0));
+    variables
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_preserves_values_and_metadata() {
+        let a = Tensor::from_slice(&[1.0f32, -2.5, 3.25, 0.0, 7.0, 8.0]).reshape([2, 3]);
+        let b = Tensor::from_slice(&[0.5f32]);
+        let meta = HashMap::from([("version".to_string(), "12".to_string())]);
+        let bytes = encode(&[("a".into(), &a), ("b".into(), &b)], meta).unwrap();
+        let mut d = Decoded::decode(&bytes).unwrap();
+        assert_eq!(d.meta::<u64>("version").unwrap(), 12);
+        assert!(d.take("a", &[3, 2]).is_err(), "shape is checked");
+        let mut d = Decoded::decode(&bytes).unwrap();
+        let a2 = d.take("a", &[2, 3]).unwrap();
+        assert_eq!(Vec::<f32>::try_from(a2.flatten(0, -1)).unwrap(), vec![1.0, -2.5, 3.25, 0.0, 7.0, 8.0]);
+        assert!(matches!(d.take("missing", &[1]), Err(WeightsError::Missing(_))));
+    }
+
+    #[test]
+    fn garbage_and_nan_are_errors_not_panics() {
+        assert!(Decoded::decode(b"not safetensors").is_err());
+        assert!(Decoded::decode(&[]).is_err());
+        let nan = Tensor::from_slice(&[f32::NAN]);
+        let bytes = encode(&[("x".into(), &nan)], HashMap::new()).unwrap();
+        assert!(matches!(Decoded::decode(&bytes), Err(WeightsError::NonFinite { .. })));
+        // Truncated blobs are refused.
+        let ok = encode(&[("x".into(), &Tensor::from_slice(&[1.0f32, 2.0]))], HashMap::new()).unwrap();
+        assert!(Decoded::decode(&ok[..ok.len() - 3]).is_err());
+    }
+}
