@@ -15,9 +15,15 @@ pub const DEFAULT_TOML: &str = include_str!("default.toml");
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("cannot read config file {path}: {source}")]
-    Read { path: String, source: std::io::Error },
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("config {origin} is not valid TOML: {source}")]
-    Parse { origin: String, source: Box<toml::de::Error> },
+    Parse {
+        origin: String,
+        source: Box<toml::de::Error>,
+    },
     #[error("override {0:?} is not of the form section.key=value")]
     OverrideSyntax(String),
     #[error("unknown config key {key:?} (see `learner config --defaults` for every key)")]
@@ -247,9 +253,8 @@ impl RunConfig {
             problems.push("learner.ingest_queue_fragments must be > 0".to_string());
         }
         if self.run.stats_window_episodes == 0 || self.run.keep_checkpoints == 0 {
-            problems.push(
-                "run.stats_window_episodes and run.keep_checkpoints must be > 0".to_string(),
-            );
+            problems
+                .push("run.stats_window_episodes and run.keep_checkpoints must be > 0".to_string());
         }
         if self.run.progress_interval_s <= 0.0 {
             problems.push("run.progress_interval_s must be > 0".to_string());
@@ -331,13 +336,20 @@ impl ScenarioConfig {
 }
 
 fn join_problems(problems: Vec<String>) -> Result<(), ConfigError> {
-    if problems.is_empty() { Ok(()) } else { Err(ConfigError::Invalid(problems.join("; "))) }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(ConfigError::Invalid(problems.join("; ")))
+    }
 }
 
 fn parse_toml(text: &str, origin: &str) -> Result<toml::Value, ConfigError> {
     text.parse::<toml::Table>()
         .map(toml::Value::Table)
-        .map_err(|source| ConfigError::Parse { origin: origin.to_string(), source: Box::new(source) })
+        .map_err(|source| ConfigError::Parse {
+            origin: origin.to_string(),
+            source: Box::new(source),
+        })
 }
 
 fn deserialize<T: serde::de::DeserializeOwned>(
@@ -359,7 +371,11 @@ fn merge(base: &mut toml::Value, user: toml::Value, prefix: &str) -> Result<(), 
         return Ok(());
     };
     for (key, value) in user_table.clone() {
-        let path = if prefix.is_empty() { key.clone() } else { format!("{prefix}.{key}") };
+        let path = if prefix.is_empty() {
+            key.clone()
+        } else {
+            format!("{prefix}.{key}")
+        };
         match base_table.get_mut(&key) {
             Some(slot @ toml::Value::Table(_)) => merge(slot, value, &path)?,
             Some(slot) => *slot = value,
@@ -370,8 +386,9 @@ fn merge(base: &mut toml::Value, user: toml::Value, prefix: &str) -> Result<(), 
 }
 
 fn apply_override(tree: &mut toml::Value, item: &str) -> Result<(), ConfigError> {
-    let (path, raw) =
-        item.split_once('=').ok_or_else(|| ConfigError::OverrideSyntax(item.to_string()))?;
+    let (path, raw) = item
+        .split_once('=')
+        .ok_or_else(|| ConfigError::OverrideSyntax(item.to_string()))?;
     let path = path.trim();
     if path.is_empty() {
         return Err(ConfigError::OverrideSyntax(item.to_string()));
@@ -385,7 +402,9 @@ fn apply_override(tree: &mut toml::Value, item: &str) -> Result<(), ConfigError>
     let mut node = tree;
     let keys: Vec<&str> = path.split('.').collect();
     for (depth, key) in keys.iter().enumerate() {
-        let unknown = || ConfigError::UnknownKey { key: path.to_string() };
+        let unknown = || ConfigError::UnknownKey {
+            key: path.to_string(),
+        };
         let table = node.as_table_mut().ok_or_else(unknown)?;
         let child = table.get_mut(*key).ok_or_else(unknown)?;
         if depth + 1 == keys.len() {
@@ -438,7 +457,10 @@ mod tests {
     fn overrides_reach_nested_keys_and_reject_typos() {
         let c = RunConfig::load(
             None,
-            &["ppo.learning_rate=1e-3".into(), "scenario.intersection.routes=[\"left\"]".into()],
+            &[
+                "ppo.learning_rate=1e-3".into(),
+                "scenario.intersection.routes=[\"left\"]".into(),
+            ],
         )
         .unwrap();
         assert_eq!(c.ppo.learning_rate, 1e-3);
@@ -463,13 +485,19 @@ mod tests {
             Err(ConfigError::UnknownKey { .. })
         ));
         std::fs::write(&path, "[ppo]\nepochs = 0\n").unwrap();
-        assert!(matches!(RunConfig::load(Some(&path), &[]), Err(ConfigError::Invalid(_))));
+        assert!(matches!(
+            RunConfig::load(Some(&path), &[]),
+            Err(ConfigError::Invalid(_))
+        ));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn scenario_round_trips_through_toml() {
-        let s = ScenarioConfig { agents: 3, ..ScenarioConfig::default() };
+        let s = ScenarioConfig {
+            agents: 3,
+            ..ScenarioConfig::default()
+        };
         assert_eq!(ScenarioConfig::from_toml(&s.to_toml()).unwrap(), s);
     }
 }

@@ -30,7 +30,12 @@ pub enum Outcome {
 }
 
 impl Outcome {
-    pub const ALL: [Outcome; 4] = [Outcome::Success, Outcome::Crash, Outcome::OutOfRoad, Outcome::Timeout];
+    pub const ALL: [Outcome; 4] = [
+        Outcome::Success,
+        Outcome::Crash,
+        Outcome::OutOfRoad,
+        Outcome::Timeout,
+    ];
 
     pub fn label(self) -> &'static str {
         match self {
@@ -93,7 +98,11 @@ pub enum FragmentError {
     #[error("non-finite value (NaN or inf) in {field} at index {index}")]
     NonFinite { field: &'static str, index: usize },
     #[error("invalid flag byte {value} in {field} at index {index} (must be 0 or 1)")]
-    Flag { field: &'static str, index: usize, value: u8 },
+    Flag {
+        field: &'static str,
+        index: usize,
+        value: u8,
+    },
     #[error("slot invariant violated: {0}")]
     Invariant(String),
 }
@@ -122,7 +131,8 @@ impl RolloutFragment {
     /// Neighbour slots of `slot` at step `t`.
     pub fn neighbours(&self, t: usize, slot: usize) -> &[u32] {
         let i = self.index(t, slot);
-        &self.neighbour_ids[self.neighbour_offsets[i] as usize..self.neighbour_offsets[i + 1] as usize]
+        &self.neighbour_ids
+            [self.neighbour_offsets[i] as usize..self.neighbour_offsets[i + 1] as usize]
     }
 
     /// Does slot `slot` need a bootstrap value after the last step?
@@ -138,13 +148,22 @@ impl RolloutFragment {
             return shape(format!("steps = {} (must be 1..={MAX_STEPS})", self.steps));
         }
         if self.agents == 0 || self.agents > MAX_AGENTS {
-            return shape(format!("agents = {} (must be 1..={MAX_AGENTS})", self.agents));
+            return shape(format!(
+                "agents = {} (must be 1..={MAX_AGENTS})",
+                self.agents
+            ));
         }
         if self.obs_dim == 0 || self.obs_dim > MAX_OBS_DIM {
-            return shape(format!("obs_dim = {} (must be 1..={MAX_OBS_DIM})", self.obs_dim));
+            return shape(format!(
+                "obs_dim = {} (must be 1..={MAX_OBS_DIM})",
+                self.obs_dim
+            ));
         }
         if self.action_dim == 0 || self.action_dim > MAX_ACTION_DIM {
-            return shape(format!("action_dim = {} (must be 1..={MAX_ACTION_DIM})", self.action_dim));
+            return shape(format!(
+                "action_dim = {} (must be 1..={MAX_ACTION_DIM})",
+                self.action_dim
+            ));
         }
         if let Some((obs_dim, action_dim)) = expected_dims {
             if (self.obs_dim, self.action_dim) != (obs_dim, action_dim) {
@@ -164,7 +183,11 @@ impl RolloutFragment {
             ("costs", self.costs.len(), cells),
             ("dones", self.dones.len(), cells),
             ("alive", self.alive.len(), cells),
-            ("bootstrap_obs", self.bootstrap_obs.len(), self.agents * self.obs_dim),
+            (
+                "bootstrap_obs",
+                self.bootstrap_obs.len(),
+                self.agents * self.obs_dim,
+            ),
             ("neighbour_offsets", self.neighbour_offsets.len(), cells + 1),
         ];
         for (field, got, want) in lengths {
@@ -189,7 +212,10 @@ impl RolloutFragment {
             }
         }
         if !self.sim_seconds.is_finite() || self.sim_seconds < 0.0 {
-            return Err(FragmentError::NonFinite { field: "sim_seconds", index: 0 });
+            return Err(FragmentError::NonFinite {
+                field: "sim_seconds",
+                index: 0,
+            });
         }
         for (i, (&done, &alive)) in self.dones.iter().zip(&self.alive).enumerate() {
             if done && !alive {
@@ -212,10 +238,14 @@ impl RolloutFragment {
             }
         }
         if self.neighbour_offsets[0] != 0 {
-            return Err(FragmentError::Invariant("neighbour_offsets must start at 0".into()));
+            return Err(FragmentError::Invariant(
+                "neighbour_offsets must start at 0".into(),
+            ));
         }
         if self.neighbour_offsets.windows(2).any(|w| w[1] < w[0]) {
-            return Err(FragmentError::Invariant("neighbour_offsets must not decrease".into()));
+            return Err(FragmentError::Invariant(
+                "neighbour_offsets must not decrease".into(),
+            ));
         }
         if self.neighbour_offsets[cells] as usize != self.neighbour_ids.len() {
             return shape(format!(
@@ -224,7 +254,11 @@ impl RolloutFragment {
                 self.neighbour_ids.len()
             ));
         }
-        if let Some(bad) = self.neighbour_ids.iter().find(|&&id| id as usize >= self.agents) {
+        if let Some(bad) = self
+            .neighbour_ids
+            .iter()
+            .find(|&&id| id as usize >= self.agents)
+        {
             return Err(FragmentError::Invariant(format!(
                 "neighbour id {bad} is not a slot (agents = {})",
                 self.agents
@@ -233,7 +267,10 @@ impl RolloutFragment {
         for (i, e) in self.episodes.iter().enumerate() {
             let values = [e.total_reward, e.mean_abs_accel, e.max_abs_accel];
             if values.iter().any(|v| !v.is_finite()) {
-                return Err(FragmentError::NonFinite { field: "episodes", index: i });
+                return Err(FragmentError::NonFinite {
+                    field: "episodes",
+                    index: i,
+                });
             }
         }
         Ok(())
@@ -258,7 +295,10 @@ impl RolloutFragment {
             .enumerate()
             .map(|(i, e)| {
                 let outcome = Outcome::from_code(e.outcome).ok_or_else(|| {
-                    FragmentError::Invariant(format!("episode {i} has unknown outcome {}", e.outcome))
+                    FragmentError::Invariant(format!(
+                        "episode {i} has unknown outcome {}",
+                        e.outcome
+                    ))
                 })?;
                 Ok(EpisodeStats {
                     outcome,
@@ -342,7 +382,11 @@ fn flags(field: &'static str, bytes: &[u8]) -> Result<Vec<bool>, FragmentError> 
         .map(|(index, &value)| match value {
             0 => Ok(false),
             1 => Ok(true),
-            _ => Err(FragmentError::Flag { field, index, value }),
+            _ => Err(FragmentError::Flag {
+                field,
+                index,
+                value,
+            }),
         })
         .collect()
 }
@@ -366,7 +410,9 @@ pub(crate) mod tests {
             obs_dim,
             action_dim,
             obs: (0..cells * obs_dim).map(|i| i as f32 / 100.0).collect(),
-            actions: (0..cells * action_dim).map(|i| (i as f32 - 5.0) / 4.0).collect(),
+            actions: (0..cells * action_dim)
+                .map(|i| (i as f32 - 5.0) / 4.0)
+                .collect(),
             log_probs: (0..cells).map(|i| -(i as f32)).collect(),
             rewards: vec![0.5, 1.0, 10.0, 1.5, 0.25, 2.0],
             costs: vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
@@ -393,7 +439,10 @@ pub(crate) mod tests {
         let fragment = sample();
         let bytes = fragment.clone().into_proto().encode_to_vec();
         let decoded = proto::RolloutFragment::decode(bytes.as_slice()).unwrap();
-        assert_eq!(RolloutFragment::from_proto(decoded, Some((4, 2))).unwrap(), fragment);
+        assert_eq!(
+            RolloutFragment::from_proto(decoded, Some((4, 2))).unwrap(),
+            fragment
+        );
     }
 
     #[test]
@@ -409,40 +458,66 @@ pub(crate) mod tests {
         p.obs.pop();
         let err = RolloutFragment::from_proto(p, None).unwrap_err();
         assert_eq!(err.reason(), "shape");
-        assert!(err.to_string().contains("obs has 23 values, expected 24"), "{err}");
+        assert!(
+            err.to_string().contains("obs has 23 values, expected 24"),
+            "{err}"
+        );
 
         let mut p = sample().into_proto();
         p.rewards[4] = f32::NAN;
         let err = RolloutFragment::from_proto(p, None).unwrap_err();
-        assert_eq!(err, FragmentError::NonFinite { field: "rewards", index: 4 });
+        assert_eq!(
+            err,
+            FragmentError::NonFinite {
+                field: "rewards",
+                index: 4
+            }
+        );
 
         let mut p = sample().into_proto();
         p.actions[0] = f32::INFINITY;
-        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "non_finite");
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "non_finite"
+        );
 
         let mut p = sample().into_proto();
         p.dones[1] = 2;
-        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "invariant");
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "invariant"
+        );
 
         // Slot 1 vanishes at step 1 without having been done.
         let mut p = sample().into_proto();
         p.alive[3] = 0;
-        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "invariant");
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "invariant"
+        );
 
         let mut p = sample().into_proto();
         p.neighbour_ids[0] = 2;
-        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "invariant");
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "invariant"
+        );
 
         // Dimensions other than the run's are refused even when self-consistent.
         assert_eq!(
-            RolloutFragment::from_proto(sample().into_proto(), Some((91, 2))).unwrap_err().reason(),
+            RolloutFragment::from_proto(sample().into_proto(), Some((91, 2)))
+                .unwrap_err()
+                .reason(),
             "shape"
         );
 
         // A header asking for absurd sizes is refused before anything is allocated for it.
         let mut p = sample().into_proto();
         p.steps = u32::MAX;
-        assert_eq!(RolloutFragment::from_proto(p, None).unwrap_err().reason(), "shape");
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "shape"
+        );
     }
 
     #[test]

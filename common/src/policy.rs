@@ -2,7 +2,7 @@
 //! normaliser's statistics stored beside the weights so actors normalise exactly as the learner
 //! trained. One parameter set serves every agent (parameter sharing).
 
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
@@ -27,7 +27,11 @@ impl Mlp {
         let mut width = in_dim;
         let sizes = hidden.iter().copied().chain(std::iter::once(out_dim));
         for (i, size) in sizes.enumerate() {
-            let gain = if i == hidden.len() { out_gain } else { std::f64::consts::SQRT_2 };
+            let gain = if i == hidden.len() {
+                out_gain
+            } else {
+                std::f64::consts::SQRT_2
+            };
             let config = nn::LinearConfig {
                 ws_init: nn::Init::Orthogonal { gain },
                 bs_init: Some(nn::Init::Const(0.0)),
@@ -43,10 +47,13 @@ impl Mlp {
 impl Module for Mlp {
     fn forward(&self, x: &Tensor) -> Tensor {
         let last = self.layers.len() - 1;
-        self.layers.iter().enumerate().fold(x.shallow_clone(), |h, (i, layer)| {
-            let h = layer.forward(&h);
-            if i == last { h } else { h.tanh() }
-        })
+        self.layers
+            .iter()
+            .enumerate()
+            .fold(x.shallow_clone(), |h, (i, layer)| {
+                let h = layer.forward(&h);
+                if i == last { h } else { h.tanh() }
+            })
     }
 }
 
@@ -60,7 +67,11 @@ pub struct ObsNormalizer {
 
 impl ObsNormalizer {
     pub fn new(dim: usize) -> Self {
-        ObsNormalizer { mean: vec![0.0; dim], var: vec![1.0; dim], count: 0.0 }
+        ObsNormalizer {
+            mean: vec![0.0; dim],
+            var: vec![1.0; dim],
+            count: 0.0,
+        }
     }
 
     /// Folds in `rows` (row-major, `mean.len()` values each).
@@ -87,7 +98,9 @@ impl ObsNormalizer {
         let total = self.count + n;
         for i in 0..dim {
             let delta = batch_mean[i] - self.mean[i];
-            let m2 = self.var[i] * self.count + batch_var[i] * n + delta * delta * self.count * n / total;
+            let m2 = self.var[i] * self.count
+                + batch_var[i] * n
+                + delta * delta * self.count * n / total;
             self.mean[i] += delta * n / total;
             self.var[i] = m2 / total;
         }
@@ -116,11 +129,21 @@ pub struct GaussianPolicy {
 }
 
 impl GaussianPolicy {
-    pub fn new(device: Device, obs_dim: i64, action_dim: i64, hidden: &[i64], init_log_std: f64) -> Self {
+    pub fn new(
+        device: Device,
+        obs_dim: i64,
+        action_dim: i64,
+        hidden: &[i64],
+        init_log_std: f64,
+    ) -> Self {
         let vs = nn::VarStore::new(device);
         let root = vs.root();
         let net = Mlp::new(&root / "policy", obs_dim, hidden, action_dim, 0.01);
-        let log_std = root.var("policy_log_std", &[action_dim], nn::Init::Const(init_log_std));
+        let log_std = root.var(
+            "policy_log_std",
+            &[action_dim],
+            nn::Init::Const(init_log_std),
+        );
         let norm = &root / "obs_norm";
         let obs_mean = norm.zeros_no_train("mean", &[obs_dim]);
         let obs_var = norm.ones_no_train("var", &[obs_dim]);
@@ -156,7 +179,11 @@ impl GaussianPolicy {
     }
 
     pub fn set_obs_stats(&mut self, stats: &ObsNormalizer) {
-        let to = |v: &[f64]| Tensor::from_slice(v).to_kind(Kind::Float).to_device(self.vs.device());
+        let to = |v: &[f64]| {
+            Tensor::from_slice(v)
+                .to_kind(Kind::Float)
+                .to_device(self.vs.device())
+        };
         tch::no_grad(|| {
             self.obs_mean.copy_(&to(&stats.mean));
             self.obs_var.copy_(&to(&stats.var));
@@ -166,7 +193,10 @@ impl GaussianPolicy {
 
     pub fn obs_stats(&self) -> Result<ObsNormalizer, WeightsError> {
         let host = |t: &Tensor| -> Result<Vec<f64>, WeightsError> {
-            Ok(Vec::<f32>::try_from(t.to_device(Device::Cpu))?.into_iter().map(f64::from).collect())
+            Ok(Vec::<f32>::try_from(t.to_device(Device::Cpu))?
+                .into_iter()
+                .map(f64::from)
+                .collect())
         };
         Ok(ObsNormalizer {
             mean: host(&self.obs_mean)?,
@@ -194,8 +224,12 @@ impl GaussianPolicy {
         let rows = (obs.len() / self.obs_dim as usize) as i64;
         tch::no_grad(|| {
             let device = self.vs.device();
-            let obs = Tensor::from_slice(obs).reshape([rows, self.obs_dim]).to_device(device);
-            let noise = Tensor::from_slice(noise).reshape([rows, self.action_dim]).to_device(device);
+            let obs = Tensor::from_slice(obs)
+                .reshape([rows, self.obs_dim])
+                .to_device(device);
+            let noise = Tensor::from_slice(noise)
+                .reshape([rows, self.action_dim])
+                .to_device(device);
             let (mean, log_std) = self.distribution(&self.normalize(&obs));
             let actions = &mean + log_std.exp() * noise;
             let log_probs = gaussian_log_prob(&mean, &log_std, &actions);
@@ -214,10 +248,18 @@ impl GaussianPolicy {
     pub fn to_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
         let named = self.named_tensors();
         let refs: Vec<(String, &Tensor)> = named.iter().map(|(n, t)| (n.clone(), t)).collect();
-        let hidden = self.hidden.iter().map(i64::to_string).collect::<Vec<_>>().join(",");
-        let metadata = HashMap::from([
+        let hidden = self
+            .hidden
+            .iter()
+            .map(i64::to_string)
+            .collect::<Vec<_>>()
+            .join(",");
+        let metadata = BTreeMap::from([
             ("version".to_string(), version.to_string()),
-            ("obs_layout_version".to_string(), OBS_LAYOUT_VERSION.to_string()),
+            (
+                "obs_layout_version".to_string(),
+                OBS_LAYOUT_VERSION.to_string(),
+            ),
             ("obs_dim".to_string(), self.obs_dim.to_string()),
             ("action_dim".to_string(), self.action_dim.to_string()),
             ("hidden".to_string(), hidden),
@@ -241,12 +283,16 @@ impl GaussianPolicy {
             .map(|h| h.parse::<i64>().ok().filter(|&h| h > 0 && h <= 1 << 16))
             .collect::<Option<Vec<i64>>>()
             .filter(|h| !h.is_empty())
-            .ok_or_else(|| WeightsError::Metadata { key: "hidden".into() })?;
+            .ok_or_else(|| WeightsError::Metadata {
+                key: "hidden".into(),
+            })?;
         let dims_ok = |d: i64, max: usize| d > 0 && d as usize <= max;
         if !dims_ok(obs_dim, crate::fragment::MAX_OBS_DIM)
             || !dims_ok(action_dim, crate::fragment::MAX_ACTION_DIM)
         {
-            return Err(WeightsError::Metadata { key: "obs_dim/action_dim".into() });
+            return Err(WeightsError::Metadata {
+                key: "obs_dim/action_dim".into(),
+            });
         }
         let policy = GaussianPolicy::new(device, obs_dim, action_dim, &hidden, 0.0);
         weights::load_var_store(&policy.vs, &mut decoded)?;
@@ -274,7 +320,11 @@ pub fn gaussian_log_prob(mean: &Tensor, log_std: &Tensor, actions: &Tensor) -> T
 
 /// Entropy of the diagonal Gaussian, summed over action dimensions.
 pub fn gaussian_entropy(log_std: &Tensor) -> Tensor {
-    (log_std + 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln())).sum_dim_intlist(-1, false, Kind::Float)
+    (log_std + 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln())).sum_dim_intlist(
+        -1,
+        false,
+        Kind::Float,
+    )
 }
 
 #[cfg(test)]
@@ -318,10 +368,19 @@ mod tests {
         let before = p.act(&obs, &noise).unwrap();
         let bytes = p.to_bytes(42).unwrap();
         let (q, meta) = GaussianPolicy::from_bytes(&bytes, Device::Cpu).unwrap();
-        assert_eq!(meta, PolicyMeta { version: 42, obs_layout_version: OBS_LAYOUT_VERSION });
+        assert_eq!(
+            meta,
+            PolicyMeta {
+                version: 42,
+                obs_layout_version: OBS_LAYOUT_VERSION
+            }
+        );
         assert_eq!(q.act(&obs, &noise).unwrap(), before);
         assert_eq!(q.obs_stats().unwrap().count, 2.0);
         let mut other = GaussianPolicy::new(Device::Cpu, 5, 2, &[16], 0.0);
-        assert!(matches!(other.load_bytes(&bytes), Err(WeightsError::Missing(_) | WeightsError::Shape { .. })));
+        assert!(matches!(
+            other.load_bytes(&bytes),
+            Err(WeightsError::Missing(_) | WeightsError::Shape { .. })
+        ));
     }
 }

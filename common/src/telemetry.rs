@@ -69,7 +69,9 @@ impl std::str::FromStr for LogFormat {
 pub fn init_logging(format: LogFormat) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
     // A second init (e.g. in tests) keeps the first subscriber.
     let _ = match format {
         LogFormat::Pretty => builder.try_init(),
@@ -105,7 +107,10 @@ pub async fn serve_metrics(
                 async move { Ok::<_, Infallible>(response) }
             });
             let io = hyper_util::rt::TokioIo::new(stream);
-            if let Err(e) = hyper::server::conn::http1::Builder::new().serve_connection(io, service).await {
+            if let Err(e) = hyper::server::conn::http1::Builder::new()
+                .serve_connection(io, service)
+                .await
+            {
                 tracing::debug!(error = %e, "metrics connection ended with an error");
             }
         });
@@ -117,7 +122,9 @@ fn respond(registry: &Registry, request: &Request<Incoming>) -> Response<Full<By
         let mut response = Response::new(Full::new(Bytes::from(body)));
         *response.status_mut() = status;
         if let Ok(value) = content_type.parse() {
-            response.headers_mut().insert(hyper::header::CONTENT_TYPE, value);
+            response
+                .headers_mut()
+                .insert(hyper::header::CONTENT_TYPE, value);
         }
         response
     };
@@ -127,12 +134,18 @@ fn respond(registry: &Registry, request: &Request<Incoming>) -> Response<Full<By
             let mut body = Vec::new();
             match encoder.encode(&registry.gather(), &mut body) {
                 Ok(()) => reply(StatusCode::OK, encoder.format_type(), body),
-                Err(e) => reply(StatusCode::INTERNAL_SERVER_ERROR, "text/plain", e.to_string().into_bytes()),
+                Err(e) => reply(
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    "text/plain",
+                    e.to_string().into_bytes(),
+                ),
             }
         }
-        (&hyper::Method::GET, "/") => {
-            reply(StatusCode::OK, "text/plain", b"Junction: metrics at /metrics\n".to_vec())
-        }
+        (&hyper::Method::GET, "/") => reply(
+            StatusCode::OK,
+            "text/plain",
+            b"Junction: metrics at /metrics\n".to_vec(),
+        ),
         _ => reply(StatusCode::NOT_FOUND, "text/plain", b"not found\n".to_vec()),
     }
 }

@@ -1,7 +1,7 @@
 //! Named f32 tensors <-> safetensors bytes: the one format for weights on the wire and in
 //! checkpoints (policy, critics, optimiser state).
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use tch::{Device, Kind, Tensor};
@@ -15,7 +15,11 @@ pub enum WeightsError {
     #[error("tensor {0:?} is missing")]
     Missing(String),
     #[error("tensor {name:?} has shape {got:?}, expected {expected:?}")]
-    Shape { name: String, got: Vec<i64>, expected: Vec<i64> },
+    Shape {
+        name: String,
+        got: Vec<i64>,
+        expected: Vec<i64>,
+    },
     #[error("tensor {name:?} holds a NaN or infinite value")]
     NonFinite { name: String },
     #[error("metadata {key:?} is missing or invalid")]
@@ -24,14 +28,22 @@ pub enum WeightsError {
     Torch(#[from] tch::TchError),
 }
 
+/// Safetensors metadata key holding our metadata as one JSON object. safetensors writes its
+/// metadata map in hash order; one key keeps the bytes identical for identical inputs.
+const METADATA_KEY: &str = "junction";
+
 /// Encodes tensors (any device; stored as CPU f32, sorted by name) plus string metadata.
 pub fn encode(
     tensors: &[(String, &Tensor)],
-    metadata: HashMap<String, String>,
+    metadata: BTreeMap<String, String>,
 ) -> Result<Vec<u8>, WeightsError> {
     let mut host: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::with_capacity(tensors.len());
     for (name, tensor) in tensors {
-        let cpu = tensor.detach().to_device(Device::Cpu).to_kind(Kind::Float).contiguous();
+        let cpu = tensor
+            .detach()
+            .to_device(Device::Cpu)
+            .to_kind(Kind::Float)
+            .contiguous();
         let shape: Vec<usize> = cpu.size().iter().map(|&d| d as usize).collect();
         let values = Vec::<f32>::try_from(cpu.flatten(0, -1))?;
         let bytes = values.iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -46,26 +58,38 @@ pub fn encode(
                 .map_err(|e| WeightsError::Format(format!("{e:?}")))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    safetensors::tensor::serialize(views, &Some(metadata))
+    let metadata_json =
+        serde_json::to_string(&metadata).map_err(|e| WeightsError::Format(e.to_string()))?;
+    let header = HashMap::from([(METADATA_KEY.to_string(), metadata_json)]);
+    safetensors::tensor::serialize(views, &Some(header))
         .map_err(|e| WeightsError::Format(format!("{e:?}")))
 }
 
 /// Decoded blob: CPU tensors by name, and the metadata.
 pub struct Decoded {
     pub tensors: HashMap<String, Tensor>,
-    pub metadata: HashMap<String, String>,
+    pub metadata: BTreeMap<String, String>,
 }
 
 impl Decoded {
     pub fn decode(bytes: &[u8]) -> Result<Self, WeightsError> {
-        let st = SafeTensors::deserialize(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
-        let (_, header) =
-            SafeTensors::read_metadata(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
-        let metadata = header.metadata().clone().unwrap_or_default();
+        let st =
+            SafeTensors::deserialize(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
+        let (_, header) = SafeTensors::read_metadata(bytes)
+            .map_err(|e| WeightsError::Format(format!("{e:?}")))?;
+        let metadata = match header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)) {
+            Some(json) => serde_json::from_str(json).map_err(|_| WeightsError::Metadata {
+                key: METADATA_KEY.to_string(),
+            })?,
+            None => BTreeMap::new(),
+        };
         let mut tensors = HashMap::new();
         for (name, view) in st.tensors() {
             if view.dtype() != Dtype::F32 {
-                return Err(WeightsError::Dtype { name, dtype: format!("{:?}", view.dtype()) });
+                return Err(WeightsError::Dtype {
+                    name,
+                    dtype: format!("{:?}", view.dtype()),
+                });
             }
             let values: Vec<f32> = view
                 .data()
@@ -83,7 +107,10 @@ impl Decoded {
 
     /// The tensor `name`, checked against `expected` shape.
     pub fn take(&mut self, name: &str, expected: &[i64]) -> Result<Tensor, WeightsError> {
-        let t = self.tensors.remove(name).ok_or_else(|| WeightsError::Missing(name.to_string()))?;
+        let t = self
+            .tensors
+            .remove(name)
+            .ok_or_else(|| WeightsError::Missing(name.to_string()))?;
         if t.size() != expected {
             return Err(WeightsError::Shape {
                 name: name.to_string(),
@@ -98,7 +125,9 @@ impl Decoded {
         self.metadata
             .get(key)
             .and_then(|v| v.parse().ok())
-            .ok_or_else(|| WeightsError::Metadata { key: key.to_string() })
+            .ok_or_else(|| WeightsError::Metadata {
+                key: key.to_string(),
+            })
     }
 }
 
@@ -134,15 +163,23 @@ mod tests {
     fn round_trip_preserves_values_and_metadata() {
         let a = Tensor::from_slice(&[1.0f32, -2.5, 3.25, 0.0, 7.0, 8.0]).reshape([2, 3]);
         let b = Tensor::from_slice(&[0.5f32]);
-        let meta = HashMap::from([("version".to_string(), "12".to_string())]);
+        let meta = BTreeMap::from([("version".to_string(), "12".to_string())]);
         let bytes = encode(&[("a".into(), &a), ("b".into(), &b)], meta).unwrap();
         let mut d = Decoded::decode(&bytes).unwrap();
         assert_eq!(d.meta::<u64>("version").unwrap(), 12);
         assert!(d.take("a", &[3, 2]).is_err(), "shape is checked");
         let mut d = Decoded::decode(&bytes).unwrap();
         let a2 = d.take("a", &[2, 3]).unwrap();
-        assert_eq!(Vec::<f32>::try_from(a2.flatten(0, -1)).unwrap(), vec![1.0, -2.5, 3.25, 0.0, 7.0, 8.0]);
-        assert!(matches!(d.take("missing", &[1]), Err(WeightsError::Missing(_))));
+        assert_eq!(
+            Vec::<f32>::try_from(a2.flatten(0, -1)).unwrap(),
+            vec![1.0, -2.5, 3.25, 0.0, 7.0, 8.0]
+        );
+        assert!(matches!(
+            d.take("missing", &[1]),
+            Err(WeightsError::Missing(_))
+        ));
+        let again = encode(&[("a".into(), &a), ("b".into(), &b)], d.metadata.clone()).unwrap();
+        assert_eq!(again, bytes, "identical inputs give identical bytes");
     }
 
     #[test]
@@ -150,10 +187,17 @@ mod tests {
         assert!(Decoded::decode(b"not safetensors").is_err());
         assert!(Decoded::decode(&[]).is_err());
         let nan = Tensor::from_slice(&[f32::NAN]);
-        let bytes = encode(&[("x".into(), &nan)], HashMap::new()).unwrap();
-        assert!(matches!(Decoded::decode(&bytes), Err(WeightsError::NonFinite { .. })));
+        let bytes = encode(&[("x".into(), &nan)], BTreeMap::new()).unwrap();
+        assert!(matches!(
+            Decoded::decode(&bytes),
+            Err(WeightsError::NonFinite { .. })
+        ));
         // Truncated blobs are refused.
-        let ok = encode(&[("x".into(), &Tensor::from_slice(&[1.0f32, 2.0]))], HashMap::new()).unwrap();
+        let ok = encode(
+            &[("x".into(), &Tensor::from_slice(&[1.0f32, 2.0]))],
+            BTreeMap::new(),
+        )
+        .unwrap();
         assert!(Decoded::decode(&ok[..ok.len() - 3]).is_err());
     }
 }

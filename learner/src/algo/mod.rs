@@ -1,0 +1,52 @@
+//! Learning algorithms, one file each; the pieces they share (GAE, batching, PPO loss terms)
+//! live beside them, written once.
+
+pub mod batch;
+pub mod gae;
+pub mod ippo;
+pub mod ppo;
+
+use tch::Tensor;
+
+use junction_common::fragment::RolloutFragment;
+use junction_common::policy::GaussianPolicy;
+use junction_common::weights::{Decoded, WeightsError};
+
+/// Diagnostics of one policy update, averaged over its minibatches.
+#[derive(Debug, Clone, Default)]
+pub struct UpdateStats {
+    pub agent_steps: usize,
+    pub samples_trained: usize,
+    pub policy_loss: f64,
+    pub value_loss: f64,
+    pub entropy: f64,
+    pub approx_kl: f64,
+    pub clip_fraction: f64,
+    pub explained_variance: f64,
+    pub grad_norm: f64,
+    /// Minibatches skipped because their loss was NaN or infinite.
+    pub skipped_minibatches: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum AlgoError {
+    #[error("torch: {0}")]
+    Torch(#[from] tch::TchError),
+    #[error("weights: {0}")]
+    Weights(#[from] WeightsError),
+    #[error("an update needs at least one fragment with an alive agent")]
+    EmptyBatch,
+}
+
+/// What the training loop needs from an algorithm.
+pub trait Algorithm {
+    fn name(&self) -> &'static str;
+    /// The policy actors run (broadcast after every update).
+    fn policy(&self) -> &GaussianPolicy;
+    /// One update on a batch of fragments.
+    fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;
+    /// Everything besides the policy needed to resume exactly (critics, optimiser state).
+    fn state_tensors(&self) -> Vec<(String, Tensor)>;
+    /// Restores the policy from its blob and the rest from `state`.
+    fn restore(&mut self, policy_blob: &[u8], state: &mut Decoded) -> Result<(), WeightsError>;
+}
