@@ -2,4 +2,9 @@
 //! checkpoints, weight broadcast and the metrics endpoint.
 
 pub mod algo;
+pub mod checkpoint;
+pub mod metrics;
 pub mod optim;
+pub mod server;
+pub mod stats;
+pub mod trainer;

@@ -1,1 +1,345 @@
-fn main() {}
+//! `learner`: trains the shared driving policy from actors' rollouts and broadcasts its weights.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand};
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::TcpListenerStream;
+
+use junction_common::config::{DEFAULT_TOML, DeviceChoice, RunConfig};
+use junction_common::proto::learner_server::LearnerServer;
+use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
+use junction_learner::algo::Algorithm;
+use junction_learner::algo::ippo::Ippo;
+use junction_learner::checkpoint::Checkpointer;
+use junction_learner::metrics::LearnerMetrics;
+use junction_learner::server::{LearnerService, Shared};
+use junction_learner::trainer::{Progress, Trainer, weights_message};
+
+#[derive(Parser)]
+#[command(
+    name = "learner",
+    version,
+    about = "Junction learner: trains a shared driving policy from actors' rollouts and broadcasts its weights."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Log format on stderr: pretty or json. Filter with RUST_LOG (default: info).
+    #[arg(long, global = true, default_value = "pretty")]
+    log_format: LogFormat,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Serve actors: take rollouts over gRPC, train, broadcast weights, expose /metrics.
+    Serve(ServeArgs),
+    /// Print the effective configuration as TOML (or, with --defaults, the annotated defaults).
+    Config(ConfigArgs),
+}
+
+#[derive(Args)]
+struct ConfigSource {
+    /// Run configuration (TOML); only the keys to change are needed. Default: the built-in
+    /// defaults (`learner config --defaults`), or the run's config.toml when resuming.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Override one config key, e.g. --set ppo.learning_rate=1e-4 (repeatable; applied after
+    /// --config, before the dedicated flags below).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    overrides: Vec<String>,
+}
+
+#[derive(Args)]
+struct ServeArgs {
+    #[command(flatten)]
+    source: ConfigSource,
+    /// gRPC listen address for actors [config: server.addr, default 0.0.0.0:50051]. Port 0
+    /// picks a free port; the bound addresses are written to <run-dir>/endpoints.json.
+    #[arg(long, value_name = "HOST:PORT")]
+    addr: Option<String>,
+    /// Prometheus /metrics listen address [config: server.metrics_addr, default 0.0.0.0:9100].
+    #[arg(long, value_name = "HOST:PORT")]
+    metrics_addr: Option<String>,
+    /// Directory for checkpoints, config.toml, progress.jsonl and endpoints.json
+    /// [default: runs/run-<unix time>].
+    #[arg(long, value_name = "DIR")]
+    run_dir: Option<PathBuf>,
+    /// Continue the run in DIR from its newest complete checkpoint.
+    #[arg(long, value_name = "DIR", conflicts_with = "run_dir")]
+    resume: Option<PathBuf>,
+    /// Training device: cpu, cuda or auto [config: learner.device, default auto]. cuda falls
+    /// back to CPU with a warning when no GPU is usable.
+    #[arg(long, value_name = "DEVICE")]
+    device: Option<String>,
+    /// Base seed of the run [config: run.seed].
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Training budget in seconds, 0 = until stopped [config: run.max_seconds, default 300].
+    #[arg(long, value_name = "SECONDS")]
+    max_seconds: Option<f64>,
+}
+
+#[derive(Args)]
+struct ConfigArgs {
+    #[command(flatten)]
+    source: ConfigSource,
+    /// Print the built-in defaults with the documentation of every key.
+    #[arg(long)]
+    defaults: bool,
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    init_logging(cli.log_format);
+    match cli.command {
+        Command::Config(args) => {
+            if args.defaults {
+                print!("{DEFAULT_TOML}");
+            } else {
+                let config =
+                    RunConfig::load(args.source.config.as_deref(), &args.source.overrides)?;
+                print!("{}", config.to_toml());
+            }
+            Ok(())
+        }
+        Command::Serve(args) => {
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .context("starting the async runtime")?;
+            runtime.block_on(serve(args))
+        }
+    }
+}
+
+fn resolve_device(choice: DeviceChoice) -> tch::Device {
+    match choice {
+        DeviceChoice::Cpu => tch::Device::Cpu,
+        DeviceChoice::Auto => tch::Device::cuda_if_available(),
+        DeviceChoice::Cuda if tch::Cuda::is_available() => tch::Device::Cuda(0),
+        DeviceChoice::Cuda => {
+            tracing::warn!("--device cuda: no usable CUDA device, training on the CPU instead");
+            tch::Device::Cpu
+        }
+    }
+}
+
+async fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    let run_dir = match (&args.resume, &args.run_dir) {
+        (Some(dir), _) | (None, Some(dir)) => dir.clone(),
+        (None, None) => {
+            let now = SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map(|d| d.as_secs())
+                .unwrap_or(0);
+            PathBuf::from(format!("runs/run-{now}"))
+        }
+    };
+    let checkpoint_dir = run_dir.join("checkpoints");
+    let resume = if args.resume.is_some() {
+        let checkpoint = Checkpointer::latest(&checkpoint_dir)?.with_context(|| {
+            format!(
+                "--resume: no complete checkpoint in {}",
+                checkpoint_dir.display()
+            )
+        })?;
+        Some(checkpoint)
+    } else {
+        if Checkpointer::latest(&checkpoint_dir)?.is_some() {
+            bail!(
+                "{} already holds checkpoints of another run: continue it with --resume {} or choose another --run-dir",
+                checkpoint_dir.display(),
+                run_dir.display()
+            );
+        }
+        None
+    };
+
+    let saved_config = run_dir.join("config.toml");
+    let config_file = match (&args.source.config, &resume) {
+        (Some(file), _) => Some(file.clone()),
+        (None, Some(_)) if saved_config.exists() => Some(saved_config.clone()),
+        _ => None,
+    };
+    let mut overrides = args.source.overrides.clone();
+    let flags = [
+        ("server.addr", args.addr.as_ref().map(|a| format!("{a:?}"))),
+        (
+            "server.metrics_addr",
+            args.metrics_addr.as_ref().map(|a| format!("{a:?}")),
+        ),
+        (
+            "learner.device",
+            args.device.as_ref().map(|d| format!("{d:?}")),
+        ),
+        ("run.seed", args.seed.map(|s| s.to_string())),
+        (
+            "run.max_seconds",
+            args.max_seconds.map(|s| format!("{s:?}")),
+        ),
+    ];
+    overrides.extend(
+        flags
+            .into_iter()
+            .filter_map(|(key, value)| value.map(|v| format!("{key}={v}"))),
+    );
+    let config =
+        RunConfig::load(config_file.as_deref(), &overrides).context("loading the configuration")?;
+
+    std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
+    write_atomically(&saved_config, config.to_toml().as_bytes())?;
+
+    if config.learner.torch_threads > 0 {
+        tch::set_num_threads(config.learner.torch_threads as i32);
+    }
+    tch::manual_seed(config.run.seed as i64);
+    let device = resolve_device(config.learner.device);
+    let obs_dim = config.scenario.obs_dim();
+    let mut algorithm = Ippo::new(&config.ppo, obs_dim, ACTION_DIM, device, config.run.seed);
+    let progress = match &resume {
+        Some(checkpoint) => {
+            if checkpoint.meta.obs_layout_version != OBS_LAYOUT_VERSION {
+                bail!(
+                    "checkpoint {} uses observation layout {}, this build uses {}",
+                    checkpoint.path.display(),
+                    checkpoint.meta.obs_layout_version,
+                    OBS_LAYOUT_VERSION
+                );
+            }
+            let mut state = junction_common::weights::Decoded::decode(&checkpoint.state)
+                .with_context(|| format!("reading {}", checkpoint.path.display()))?;
+            algorithm
+                .restore(&checkpoint.policy, &mut state)
+                .with_context(|| format!("restoring from {}", checkpoint.path.display()))?;
+            tracing::info!(path = %checkpoint.path.display(), version = checkpoint.meta.version, "resumed");
+            Progress::from(&checkpoint.meta)
+        }
+        None => Progress::default(),
+    };
+
+    let metrics = LearnerMetrics::new().context("registering metrics")?;
+    metrics.policy_version.set(progress.version as i64);
+    let registry = metrics.registry.clone();
+    let initial = weights_message(&algorithm, progress.version, false)?;
+    let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
+    let (queue_tx, queue_rx) = mpsc::channel(config.learner.ingest_queue_fragments);
+
+    let grpc_listener = bind(&config.server.addr, "gRPC").await?;
+    let metrics_listener = bind(&config.server.metrics_addr, "metrics").await?;
+    let grpc_addr = grpc_listener.local_addr()?;
+    let metrics_addr = metrics_listener.local_addr()?;
+    write_endpoints(&run_dir, grpc_addr, metrics_addr)?;
+    tracing::info!(
+        grpc = %grpc_addr,
+        metrics = %metrics_addr,
+        run_dir = %run_dir.display(),
+        device = ?device,
+        scenario = %config.scenario.name,
+        "learner serving"
+    );
+
+    let (shutdown_tx, shutdown_rx) = watch::channel(false);
+    let wait_for_shutdown = |mut rx: watch::Receiver<bool>| async move {
+        let _ = rx.wait_for(|stop| *stop).await;
+    };
+    let max_bytes = config.server.max_message_bytes;
+    let service = LearnerServer::new(LearnerService::new(Arc::clone(&shared), queue_tx))
+        .max_decoding_message_size(max_bytes)
+        .max_encoding_message_size(max_bytes);
+    let grpc = tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(service)
+            .serve_with_incoming_shutdown(
+                TcpListenerStream::new(grpc_listener),
+                wait_for_shutdown(shutdown_rx.clone()),
+            ),
+    );
+    let metrics_server = tokio::spawn(serve_metrics(
+        metrics_listener,
+        registry,
+        wait_for_shutdown(shutdown_rx),
+    ));
+
+    let stop = Arc::new(AtomicBool::new(false));
+    tokio::spawn(stop_on_signal(Arc::clone(&stop)));
+    let trainer = Trainer {
+        shared: Arc::clone(&shared),
+        algorithm: Box::new(algorithm),
+        queue: queue_rx,
+        runtime: tokio::runtime::Handle::current(),
+        checkpointer: Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?,
+        progress_log: run_dir.join("progress.jsonl"),
+        stop,
+        progress,
+    };
+    let outcome = tokio::task::spawn_blocking(move || trainer.run())
+        .await
+        .context("training thread panicked")?;
+
+    // Actors have been told the run is over; give their streams a moment to close, then stop.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let _ = shutdown_tx.send(true);
+    if tokio::time::timeout(Duration::from_secs(10), grpc)
+        .await
+        .is_err()
+    {
+        tracing::warn!("gRPC server did not stop within 10 s; exiting anyway");
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(2), metrics_server).await;
+    let progress = outcome?;
+    tracing::info!(
+        version = progress.version,
+        agent_steps = progress.agent_steps,
+        samples_trained = progress.samples_trained,
+        "learner stopped"
+    );
+    Ok(())
+}
+
+async fn bind(addr: &str, what: &str) -> anyhow::Result<tokio::net::TcpListener> {
+    tokio::net::TcpListener::bind(addr)
+        .await
+        .with_context(|| format!("binding the {what} address {addr}"))
+}
+
+/// Stops training on Ctrl-C or SIGTERM; a second signal exits at once.
+async fn stop_on_signal(stop: Arc<AtomicBool>) {
+    let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(term) => term,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot listen for SIGTERM");
+            return;
+        }
+    };
+    for _ in 0..2 {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {},
+            _ = term.recv() => {},
+        }
+        if stop.swap(true, Ordering::Relaxed) {
+            tracing::warn!("second stop signal: exiting immediately");
+            std::process::exit(130);
+        }
+        tracing::info!("stop signal received: finishing the current step, writing a checkpoint");
+    }
+}
+
+fn write_endpoints(run_dir: &Path, grpc: SocketAddr, metrics: SocketAddr) -> anyhow::Result<()> {
+    let body = serde_json::json!({ "grpc": grpc.to_string(), "metrics": metrics.to_string(), "pid": std::process::id() });
+    write_atomically(&run_dir.join("endpoints.json"), body.to_string().as_bytes())
+}
+
+/// Readers (tests, scripts) never see a half-written file.
+fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} into place", tmp.display()))
+}

@@ -1,0 +1,266 @@
+//! Checkpoints: `<run-dir>/checkpoints/ckpt-<version>/` holding `policy.safetensors` (the same
+//! blob actors receive), `learner.safetensors` (critic and optimiser state) and `meta.json`
+//! (version, counters, the effective config).
+//!
+//! A checkpoint is written into a temporary directory, every file fsynced, then renamed into
+//! place and the parent fsynced, so a crash at any point leaves either the complete new
+//! checkpoint or none: readers only ever see complete ones.
+
+use std::fs::{self, File};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+const POLICY_FILE: &str = "policy.safetensors";
+const STATE_FILE: &str = "learner.safetensors";
+const META_FILE: &str = "meta.json";
+const PREFIX: &str = "ckpt-";
+const TMP_PREFIX: &str = ".tmp-";
+
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("{action} {path}: {source}")]
+    Io {
+        action: &'static str,
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("checkpoint metadata {path} is invalid: {source}")]
+    Meta {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+}
+
+fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + use<> {
+    let path = path.to_path_buf();
+    move |source| CheckpointError::Io {
+        action,
+        path,
+        source,
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointMeta {
+    pub version: u64,
+    pub updates: u64,
+    pub agent_steps: u64,
+    pub env_steps: u64,
+    pub samples_trained: u64,
+    pub algorithm: String,
+    pub protocol_version: u32,
+    pub obs_layout_version: u32,
+    pub created_unix_s: u64,
+    /// The effective run configuration, as TOML.
+    pub config: String,
+}
+
+pub struct Checkpoint {
+    pub path: PathBuf,
+    pub meta: CheckpointMeta,
+    pub policy: Vec<u8>,
+    pub state: Vec<u8>,
+}
+
+pub struct Checkpointer {
+    dir: PathBuf,
+    keep: usize,
+}
+
+impl Checkpointer {
+    /// Creates `dir` and removes temporary directories left by an interrupted write.
+    pub fn new(dir: PathBuf, keep: usize) -> Result<Self, CheckpointError> {
+        fs::create_dir_all(&dir).map_err(io("create", &dir))?;
+        for entry in fs::read_dir(&dir).map_err(io("list", &dir))?.flatten() {
+            if entry.file_name().to_string_lossy().starts_with(TMP_PREFIX) {
+                let path = entry.path();
+                fs::remove_dir_all(&path).map_err(io("remove", &path))?;
+            }
+        }
+        Ok(Checkpointer {
+            dir,
+            keep: keep.max(1),
+        })
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Writes a checkpoint atomically and prunes all but the newest `keep`.
+    pub fn write(
+        &self,
+        meta: &CheckpointMeta,
+        policy: &[u8],
+        state: &[u8],
+    ) -> Result<PathBuf, CheckpointError> {
+        let final_path = self.dir.join(format!("{PREFIX}{:010}", meta.version));
+        if final_path.join(META_FILE).exists() {
+            // This version is already on disk (no update since): nothing new to record.
+            return Ok(final_path);
+        }
+        let tmp = self.dir.join(format!(
+            "{TMP_PREFIX}{:010}-{}",
+            meta.version,
+            std::process::id()
+        ));
+        fs::create_dir_all(&tmp).map_err(io("create", &tmp))?;
+        let meta_json =
+            serde_json::to_vec_pretty(meta).map_err(|source| CheckpointError::Meta {
+                path: tmp.join(META_FILE),
+                source,
+            })?;
+        for (name, bytes) in [
+            (POLICY_FILE, policy),
+            (STATE_FILE, state),
+            (META_FILE, meta_json.as_slice()),
+        ] {
+            let path = tmp.join(name);
+            let mut file = File::create(&path).map_err(io("create", &path))?;
+            file.write_all(bytes).map_err(io("write", &path))?;
+            file.sync_all().map_err(io("fsync", &path))?;
+        }
+        sync_dir(&tmp)?;
+        if final_path.exists() {
+            // An incomplete directory of the same name (no meta.json): replace it.
+            fs::remove_dir_all(&final_path).map_err(io("remove", &final_path))?;
+        }
+        fs::rename(&tmp, &final_path).map_err(io("rename", &tmp))?;
+        sync_dir(&self.dir)?;
+        self.prune()?;
+        Ok(final_path)
+    }
+
+    fn prune(&self) -> Result<(), CheckpointError> {
+        let mut versions = list(&self.dir)?;
+        versions.sort();
+        let excess = versions.len().saturating_sub(self.keep);
+        for (_, path) in versions.into_iter().take(excess) {
+            fs::remove_dir_all(&path).map_err(io("remove", &path))?;
+        }
+        Ok(())
+    }
+
+    /// The newest checkpoint that reads back completely; damaged ones are skipped with a warning.
+    pub fn latest(dir: &Path) -> Result<Option<Checkpoint>, CheckpointError> {
+        if !dir.exists() {
+            return Ok(None);
+        }
+        let mut versions = list(dir)?;
+        versions.sort();
+        for (_, path) in versions.into_iter().rev() {
+            match read(&path) {
+                Ok(checkpoint) => return Ok(Some(checkpoint)),
+                Err(e) => tracing::warn!(error = %e, "skipping unreadable checkpoint"),
+            }
+        }
+        Ok(None)
+    }
+}
+
+fn read(path: &Path) -> Result<Checkpoint, CheckpointError> {
+    let read_file = |name: &str| {
+        let file = path.join(name);
+        fs::read(&file).map_err(io("read", &file))
+    };
+    let meta_path = path.join(META_FILE);
+    let meta =
+        serde_json::from_slice(&read_file(META_FILE)?).map_err(|source| CheckpointError::Meta {
+            path: meta_path,
+            source,
+        })?;
+    Ok(Checkpoint {
+        path: path.to_path_buf(),
+        meta,
+        policy: read_file(POLICY_FILE)?,
+        state: read_file(STATE_FILE)?,
+    })
+}
+
+/// Complete checkpoint directories (name parses, meta.json present) with their versions.
+fn list(dir: &Path) -> Result<Vec<(u64, PathBuf)>, CheckpointError> {
+    let mut out = Vec::new();
+    for entry in fs::read_dir(dir).map_err(io("list", dir))?.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(version) = name
+            .strip_prefix(PREFIX)
+            .and_then(|v| v.parse::<u64>().ok())
+        else {
+            continue;
+        };
+        if entry.path().join(META_FILE).exists() {
+            out.push((version, entry.path()));
+        }
+    }
+    Ok(out)
+}
+
+fn sync_dir(path: &Path) -> Result<(), CheckpointError> {
+    File::open(path)
+        .and_then(|d| d.sync_all())
+        .map_err(io("fsync", path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn meta(version: u64) -> CheckpointMeta {
+        CheckpointMeta {
+            version,
+            updates: version,
+            agent_steps: 10 * version,
+            env_steps: version,
+            samples_trained: 50 * version,
+            algorithm: "ippo".into(),
+            protocol_version: 1,
+            obs_layout_version: 1,
+            created_unix_s: 0,
+            config: "[run]\nseed = 1\n".into(),
+        }
+    }
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("junction-ckpt-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        dir
+    }
+
+    #[test]
+    fn keeps_the_newest_k_and_reads_back_the_latest() {
+        let dir = temp_dir("keep");
+        let c = Checkpointer::new(dir.clone(), 2).unwrap();
+        for v in 1..=4 {
+            c.write(&meta(v), &[v as u8; 3], &[0xAA, v as u8]).unwrap();
+        }
+        let mut left: Vec<u64> = list(&dir).unwrap().into_iter().map(|(v, _)| v).collect();
+        left.sort();
+        assert_eq!(left, vec![3, 4]);
+        let latest = Checkpointer::latest(&dir).unwrap().unwrap();
+        assert_eq!(latest.meta, meta(4));
+        assert_eq!((latest.policy, latest.state), (vec![4u8; 3], vec![0xAA, 4]));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn interrupted_and_damaged_writes_fall_back_to_the_previous_checkpoint() {
+        let dir = temp_dir("damaged");
+        let c = Checkpointer::new(dir.clone(), 5).unwrap();
+        c.write(&meta(1), b"p1", b"s1").unwrap();
+        // A write killed before its rename leaves only a temporary directory...
+        fs::create_dir_all(dir.join(".tmp-0000000002-1")).unwrap();
+        fs::write(dir.join(".tmp-0000000002-1").join(POLICY_FILE), b"half").unwrap();
+        // ...and a damaged newer checkpoint (corrupt metadata) is skipped.
+        fs::create_dir_all(dir.join("ckpt-0000000003")).unwrap();
+        fs::write(dir.join("ckpt-0000000003").join(META_FILE), b"{ not json").unwrap();
+        let latest = Checkpointer::latest(&dir).unwrap().unwrap();
+        assert_eq!(latest.meta.version, 1);
+        assert_eq!(latest.policy, b"p1");
+        // Restarting the checkpointer clears the temporary directory.
+        Checkpointer::new(dir.clone(), 5).unwrap();
+        assert!(!dir.join(".tmp-0000000002-1").exists());
+        fs::remove_dir_all(&dir).unwrap();
+    }
+}

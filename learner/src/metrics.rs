@@ -1,0 +1,199 @@
+//! The learner's Prometheus metrics (names in `junction_common::telemetry::names`).
+
+use prometheus::{
+    Gauge, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, Opts, Registry,
+};
+
+use junction_common::telemetry::names;
+
+use crate::algo::UpdateStats;
+use crate::stats::WindowSummary;
+
+pub struct LearnerMetrics {
+    pub registry: Registry,
+    pub policy_version: IntGauge,
+    pub agent_steps: IntCounter,
+    pub env_steps: IntCounter,
+    pub fragments: IntCounter,
+    pub fragments_rejected: IntCounterVec,
+    pub fragments_dropped: IntCounterVec,
+    pub samples_trained: IntCounter,
+    pub updates: IntCounter,
+    pub update_seconds: Histogram,
+    pub connected_actors: IntGauge,
+    pub queue_fragments: IntGauge,
+    pub transport_bytes: IntCounterVec,
+    pub episodes: IntCounterVec,
+    success_rate: GaugeVec,
+    crash_rate: GaugeVec,
+    out_of_road_rate: GaugeVec,
+    episode_reward_mean: GaugeVec,
+    episode_length_mean: GaugeVec,
+    policy_loss: Gauge,
+    value_loss: Gauge,
+    entropy: Gauge,
+    approx_kl: Gauge,
+    clip_fraction: Gauge,
+    explained_variance: Gauge,
+    grad_norm: Gauge,
+}
+
+impl LearnerMetrics {
+    pub fn new() -> Result<Self, prometheus::Error> {
+        let registry = Registry::new();
+        let int_gauge = |name: &str, help: &str| -> Result<IntGauge, prometheus::Error> {
+            let g = IntGauge::new(name, help)?;
+            registry.register(Box::new(g.clone()))?;
+            Ok(g)
+        };
+        let gauge = |name: &str, help: &str| -> Result<Gauge, prometheus::Error> {
+            let g = Gauge::new(name, help)?;
+            registry.register(Box::new(g.clone()))?;
+            Ok(g)
+        };
+        let counter = |name: &str, help: &str| -> Result<IntCounter, prometheus::Error> {
+            let c = IntCounter::new(name, help)?;
+            registry.register(Box::new(c.clone()))?;
+            Ok(c)
+        };
+        let counter_vec =
+            |name: &str, help: &str, labels: &[&str]| -> Result<IntCounterVec, prometheus::Error> {
+                let c = IntCounterVec::new(Opts::new(name, help), labels)?;
+                registry.register(Box::new(c.clone()))?;
+                Ok(c)
+            };
+        let scenario_gauge = |name: &str, help: &str| -> Result<GaugeVec, prometheus::Error> {
+            let g = GaugeVec::new(Opts::new(name, help), &["scenario"])?;
+            registry.register(Box::new(g.clone()))?;
+            Ok(g)
+        };
+        let update_seconds = Histogram::with_opts(
+            HistogramOpts::new(
+                names::LEARNER_UPDATE_SECONDS,
+                "Wall time of one policy update.",
+            )
+            .buckets(vec![0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0]),
+        )?;
+        registry.register(Box::new(update_seconds.clone()))?;
+        Ok(LearnerMetrics {
+            policy_version: int_gauge(
+                names::LEARNER_POLICY_VERSION,
+                "Version of the newest published policy.",
+            )?,
+            agent_steps: counter(
+                names::LEARNER_AGENT_STEPS,
+                "Agent-steps consumed for training.",
+            )?,
+            env_steps: counter(
+                names::LEARNER_ENV_STEPS,
+                "Scene steps consumed for training.",
+            )?,
+            fragments: counter(
+                names::LEARNER_FRAGMENTS,
+                "Rollout fragments accepted by ingest.",
+            )?,
+            fragments_rejected: counter_vec(
+                names::LEARNER_FRAGMENTS_REJECTED,
+                "Fragments refused as invalid, by reason.",
+                &["reason"],
+            )?,
+            fragments_dropped: counter_vec(
+                names::LEARNER_FRAGMENTS_DROPPED,
+                "Accepted fragments not trained on, by reason (stale: older than max_policy_lag).",
+                &["reason"],
+            )?,
+            samples_trained: counter(
+                names::LEARNER_SAMPLES_TRAINED,
+                "Agent-steps passed through gradient steps (counted once per epoch).",
+            )?,
+            updates: counter(names::LEARNER_UPDATES, "Policy updates completed.")?,
+            update_seconds,
+            connected_actors: int_gauge(
+                names::LEARNER_CONNECTED_ACTORS,
+                "Actors with an open rollout stream.",
+            )?,
+            queue_fragments: int_gauge(
+                names::LEARNER_QUEUE_FRAGMENTS,
+                "Fragments waiting in the ingest queue.",
+            )?,
+            transport_bytes: counter_vec(
+                names::LEARNER_TRANSPORT_BYTES,
+                "Encoded fragment bytes received, by transport.",
+                &["transport"],
+            )?,
+            episodes: counter_vec(
+                names::LEARNER_EPISODES,
+                "Finished agent episodes, by scenario and outcome.",
+                &["scenario", "outcome"],
+            )?,
+            success_rate: scenario_gauge(
+                names::LEARNER_SUCCESS_RATE,
+                "Share of recent episodes that reached their destination.",
+            )?,
+            crash_rate: scenario_gauge(
+                names::LEARNER_CRASH_RATE,
+                "Share of recent episodes that ended in a crash.",
+            )?,
+            out_of_road_rate: scenario_gauge(
+                names::LEARNER_OUT_OF_ROAD_RATE,
+                "Share of recent episodes that left the road.",
+            )?,
+            episode_reward_mean: scenario_gauge(
+                names::LEARNER_EPISODE_REWARD_MEAN,
+                "Mean total reward of recent episodes.",
+            )?,
+            episode_length_mean: scenario_gauge(
+                names::LEARNER_EPISODE_LENGTH_MEAN,
+                "Mean length of recent episodes, in decision steps.",
+            )?,
+            policy_loss: gauge(names::LEARNER_POLICY_LOSS, "PPO clipped surrogate loss.")?,
+            value_loss: gauge(names::LEARNER_VALUE_LOSS, "Value-function loss.")?,
+            entropy: gauge(names::LEARNER_ENTROPY, "Policy entropy (nats).")?,
+            approx_kl: gauge(
+                names::LEARNER_APPROX_KL,
+                "Approximate KL(old ‖ new) per update.",
+            )?,
+            clip_fraction: gauge(
+                names::LEARNER_CLIP_FRACTION,
+                "Share of samples whose probability ratio was clipped.",
+            )?,
+            explained_variance: gauge(
+                names::LEARNER_EXPLAINED_VARIANCE,
+                "Share of return variance explained by the critic.",
+            )?,
+            grad_norm: gauge(names::LEARNER_GRAD_NORM, "Gradient norm before clipping.")?,
+            registry,
+        })
+    }
+
+    pub fn record_update(&self, stats: &UpdateStats, seconds: f64) {
+        self.updates.inc();
+        self.update_seconds.observe(seconds);
+        self.samples_trained.inc_by(stats.samples_trained as u64);
+        self.policy_loss.set(stats.policy_loss);
+        self.value_loss.set(stats.value_loss);
+        self.entropy.set(stats.entropy);
+        self.approx_kl.set(stats.approx_kl);
+        self.clip_fraction.set(stats.clip_fraction);
+        self.explained_variance.set(stats.explained_variance);
+        self.grad_norm.set(stats.grad_norm);
+    }
+
+    pub fn record_window(&self, scenario: &str, summary: &WindowSummary) {
+        self.success_rate
+            .with_label_values(&[scenario])
+            .set(summary.success_rate);
+        self.crash_rate
+            .with_label_values(&[scenario])
+            .set(summary.crash_rate);
+        self.out_of_road_rate
+            .with_label_values(&[scenario])
+            .set(summary.out_of_road_rate);
+        self.episode_reward_mean
+            .with_label_values(&[scenario])
+            .set(summary.mean_reward);
+        self.episode_length_mean
+            .with_label_values(&[scenario])
+            .set(summary.mean_length);
+    }
+}

@@ -1,0 +1,242 @@
+//! The gRPC face of the learner: actor registration, rollout ingest (validate → bounded
+//! queue), weight broadcast and status.
+
+use std::collections::HashSet;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use prost::Message;
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+use junction_common::config::RunConfig;
+use junction_common::fragment::{FragmentError, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::proto::{self, learner_server::Learner};
+use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+
+use crate::metrics::LearnerMetrics;
+
+/// State the gRPC handlers share with the training loop.
+pub struct Shared {
+    pub config: RunConfig,
+    pub metrics: LearnerMetrics,
+    /// The newest weights; every WatchPolicy stream follows it.
+    pub weights: watch::Sender<Arc<proto::PolicyWeights>>,
+    pub status: Mutex<proto::StatusReply>,
+    next_actor: AtomicU64,
+    /// Rejection reasons already logged at warn level (later ones go to debug).
+    logged_rejections: Mutex<HashSet<&'static str>>,
+}
+
+impl Shared {
+    pub fn new(config: RunConfig, metrics: LearnerMetrics, initial: proto::PolicyWeights) -> Self {
+        let (weights, _) = watch::channel(Arc::new(initial));
+        Shared {
+            config,
+            metrics,
+            weights,
+            status: Mutex::new(proto::StatusReply {
+                protocol_version: PROTOCOL_VERSION,
+                ..Default::default()
+            }),
+            next_actor: AtomicU64::new(1),
+            logged_rejections: Mutex::new(HashSet::new()),
+        }
+    }
+
+    fn obs_dim(&self) -> usize {
+        self.config.scenario.obs_dim()
+    }
+
+    /// Counts a refused fragment and logs its cause once at warn level.
+    fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
+        self.metrics
+            .fragments_rejected
+            .with_label_values(&[reason])
+            .inc();
+        let first = self
+            .logged_rejections
+            .lock()
+            .map(|mut seen| seen.insert(reason))
+            .unwrap_or(true);
+        if first {
+            tracing::warn!(
+                reason,
+                actor,
+                "rejected fragment: {detail} (further rejections of this kind log at debug)"
+            );
+        } else {
+            tracing::debug!(reason, actor, "rejected fragment: {detail}");
+        }
+    }
+}
+
+pub struct LearnerService {
+    shared: Arc<Shared>,
+    queue: mpsc::Sender<RolloutFragment>,
+}
+
+impl LearnerService {
+    pub fn new(shared: Arc<Shared>, queue: mpsc::Sender<RolloutFragment>) -> Self {
+        LearnerService { shared, queue }
+    }
+}
+
+fn check_version(got: u32) -> Result<(), Status> {
+    if got == PROTOCOL_VERSION {
+        Ok(())
+    } else {
+        Err(Status::failed_precondition(format!(
+            "protocol version {got} is not supported (this learner speaks {PROTOCOL_VERSION})"
+        )))
+    }
+}
+
+/// Keeps `connected_actors` right however a stream ends.
+struct ConnectedGuard<'a>(&'a prometheus::IntGauge);
+
+impl<'a> ConnectedGuard<'a> {
+    fn new(gauge: &'a prometheus::IntGauge) -> Self {
+        gauge.inc();
+        ConnectedGuard(gauge)
+    }
+}
+
+impl Drop for ConnectedGuard<'_> {
+    fn drop(&mut self) {
+        self.0.dec();
+    }
+}
+
+#[tonic::async_trait]
+impl Learner for LearnerService {
+    async fn register(
+        &self,
+        request: Request<proto::RegisterRequest>,
+    ) -> Result<Response<proto::RegisterReply>, Status> {
+        let hello = request.into_inner();
+        check_version(hello.protocol_version)?;
+        let actor_id = format!(
+            "actor-{}",
+            self.shared.next_actor.fetch_add(1, Ordering::Relaxed)
+        );
+        tracing::info!(actor = %actor_id, name = %hello.actor_name, scenes = hello.scenes, "actor registered");
+        let config = &self.shared.config;
+        Ok(Response::new(proto::RegisterReply {
+            protocol_version: PROTOCOL_VERSION,
+            actor_id,
+            scenario_toml: config.scenario.to_toml(),
+            fragment_length: config.rollout.fragment_length as u32,
+            obs_dim: self.shared.obs_dim() as u32,
+            action_dim: ACTION_DIM as u32,
+            obs_layout_version: OBS_LAYOUT_VERSION,
+            run_seed: config.run.seed,
+        }))
+    }
+
+    async fn push_rollouts(
+        &self,
+        request: Request<Streaming<proto::RolloutFragment>>,
+    ) -> Result<Response<proto::PushSummary>, Status> {
+        let shared = &self.shared;
+        let _connected = ConnectedGuard::new(&shared.metrics.connected_actors);
+        let mut stream = request.into_inner();
+        let mut summary = proto::PushSummary::default();
+        let dims = Some((shared.obs_dim(), ACTION_DIM));
+        loop {
+            let message = match stream.message().await {
+                Ok(Some(message)) => message,
+                Ok(None) => break,
+                Err(status) => {
+                    // tonic reports undecodable bytes as INTERNAL; anything else is the peer
+                    // going away mid-stream, which is not the data's fault.
+                    if status.code() == tonic::Code::Internal && status.message().contains("decode")
+                    {
+                        shared.reject("decode", "?", status.message());
+                    } else {
+                        tracing::debug!(error = %status, "rollout stream ended with an error");
+                    }
+                    return Err(status);
+                }
+            };
+            shared
+                .metrics
+                .transport_bytes
+                .with_label_values(&["grpc"])
+                .inc_by(message.encoded_len() as u64);
+            let actor = message.actor_id.clone();
+            let fragment = match RolloutFragment::from_proto(message, dims) {
+                Ok(f) if f.scenario != shared.config.scenario.name => {
+                    let detail = format!(
+                        "fragment is from scenario {:?}, this run trains {:?}",
+                        f.scenario, shared.config.scenario.name
+                    );
+                    shared.reject("scenario", &actor, &detail);
+                    return Err(Status::invalid_argument(format!(
+                        "fragment rejected: {detail}"
+                    )));
+                }
+                Ok(f) => f,
+                Err(e) => {
+                    shared.reject(e.reason(), &actor, &e.to_string());
+                    return Err(match e {
+                        FragmentError::Version { .. } => {
+                            Status::failed_precondition(format!("fragment rejected: {e}"))
+                        }
+                        _ => Status::invalid_argument(format!("fragment rejected: {e}")),
+                    });
+                }
+            };
+            let agent_steps = fragment.agent_steps() as u64;
+            shared.metrics.fragments.inc();
+            // A full queue parks this stream here, so the actor's sends stall (backpressure).
+            self.queue.send(fragment).await.map_err(|_| {
+                Status::unavailable("the learner has finished training and is shutting down")
+            })?;
+            summary.accepted_fragments += 1;
+            summary.accepted_agent_steps += agent_steps;
+        }
+        Ok(Response::new(summary))
+    }
+
+    type WatchPolicyStream = ReceiverStream<Result<proto::PolicyWeights, Status>>;
+
+    async fn watch_policy(
+        &self,
+        request: Request<proto::WatchPolicyRequest>,
+    ) -> Result<Response<Self::WatchPolicyStream>, Status> {
+        let watch_request = request.into_inner();
+        check_version(watch_request.protocol_version)?;
+        let mut latest = self.shared.weights.subscribe();
+        let (tx, rx) = mpsc::channel(2);
+        tokio::spawn(async move {
+            loop {
+                let weights = Arc::clone(&latest.borrow_and_update());
+                let finished = weights.run_finished;
+                if tx.send(Ok(weights.as_ref().clone())).await.is_err() || finished {
+                    break;
+                }
+                if latest.changed().await.is_err() {
+                    break;
+                }
+            }
+            tracing::debug!(actor = %watch_request.actor_id, "policy stream closed");
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn status(
+        &self,
+        _request: Request<proto::StatusRequest>,
+    ) -> Result<Response<proto::StatusReply>, Status> {
+        let mut reply = self
+            .shared
+            .status
+            .lock()
+            .map(|s| s.clone())
+            .unwrap_or_default();
+        reply.connected_actors = self.shared.metrics.connected_actors.get().max(0) as u32;
+        Ok(Response::new(reply))
+    }
+}

@@ -1,0 +1,106 @@
+//! Driving metrics over a sliding window of finished episodes (paper §4.2, CoPO's rates).
+
+use std::collections::VecDeque;
+
+use junction_common::fragment::{EpisodeStats, Outcome};
+
+pub struct EpisodeWindow {
+    capacity: usize,
+    episodes: VecDeque<EpisodeStats>,
+}
+
+/// Aggregates of the episodes in the window; rates are shares of episodes.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct WindowSummary {
+    pub episodes: usize,
+    pub success_rate: f64,
+    pub crash_rate: f64,
+    pub out_of_road_rate: f64,
+    pub timeout_rate: f64,
+    pub mean_reward: f64,
+    pub max_reward: f64,
+    pub mean_length: f64,
+    pub max_length: u32,
+}
+
+impl EpisodeWindow {
+    pub fn new(capacity: usize) -> Self {
+        EpisodeWindow {
+            capacity: capacity.max(1),
+            episodes: VecDeque::with_capacity(capacity),
+        }
+    }
+
+    pub fn push(&mut self, episode: EpisodeStats) {
+        if self.episodes.len() == self.capacity {
+            self.episodes.pop_front();
+        }
+        self.episodes.push_back(episode);
+    }
+
+    pub fn summary(&self) -> WindowSummary {
+        let n = self.episodes.len();
+        if n == 0 {
+            return WindowSummary::default();
+        }
+        let share = |outcome: Outcome| {
+            self.episodes
+                .iter()
+                .filter(|e| e.outcome == outcome)
+                .count() as f64
+                / n as f64
+        };
+        let rewards = self.episodes.iter().map(|e| e.total_reward as f64);
+        WindowSummary {
+            episodes: n,
+            success_rate: share(Outcome::Success),
+            crash_rate: share(Outcome::Crash),
+            out_of_road_rate: share(Outcome::OutOfRoad),
+            timeout_rate: share(Outcome::Timeout),
+            mean_reward: rewards.clone().sum::<f64>() / n as f64,
+            max_reward: rewards.fold(f64::NEG_INFINITY, f64::max),
+            mean_length: self.episodes.iter().map(|e| e.length as f64).sum::<f64>() / n as f64,
+            max_length: self.episodes.iter().map(|e| e.length).max().unwrap_or(0),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(outcome: Outcome, reward: f32, length: u32) -> EpisodeStats {
+        EpisodeStats {
+            outcome,
+            length,
+            total_reward: reward,
+            mean_abs_accel: 0.0,
+            max_abs_accel: 0.0,
+            collisions: 0,
+        }
+    }
+
+    #[test]
+    fn rates_and_means_over_the_newest_episodes_only() {
+        let mut w = EpisodeWindow::new(4);
+        w.push(episode(Outcome::Crash, -100.0, 1000)); // falls out of the window
+        w.push(episode(Outcome::Success, 10.0, 50));
+        w.push(episode(Outcome::Success, 20.0, 70));
+        w.push(episode(Outcome::Crash, -5.0, 10));
+        w.push(episode(Outcome::OutOfRoad, 3.0, 30));
+        let s = w.summary();
+        assert_eq!(s.episodes, 4);
+        assert_eq!(
+            (
+                s.success_rate,
+                s.crash_rate,
+                s.out_of_road_rate,
+                s.timeout_rate
+            ),
+            (0.5, 0.25, 0.25, 0.0)
+        );
+        assert_eq!((s.mean_reward, s.max_reward), (7.0, 20.0));
+        assert_eq!((s.mean_length, s.max_length), (40.0, 70));
+        assert_eq!(EpisodeWindow::new(3).summary(), WindowSummary::default());
+    }
+}
