@@ -32,6 +32,16 @@ pub enum ConfigError {
     Invalid(String),
 }
 
+/// One source of configuration, applied over the defaults in order.
+pub enum Layer<'a> {
+    /// A run configuration file.
+    File(&'a Path),
+    /// A scenario (TOML of the `[scenario]` section's keys) replacing the scenario's keys.
+    Scenario(&'a str),
+    /// One `section.key=value` override.
+    Set(&'a str),
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RunConfig {
@@ -202,17 +212,34 @@ impl Default for ScenarioConfig {
 impl RunConfig {
     /// Defaults, then `file` (if any), then `overrides` (`section.key=value`), validated.
     pub fn load(file: Option<&Path>, overrides: &[String]) -> Result<Self, ConfigError> {
+        let layers: Vec<Layer> = file
+            .map(Layer::File)
+            .into_iter()
+            .chain(overrides.iter().map(|o| Layer::Set(o)))
+            .collect();
+        RunConfig::from_layers(&layers)
+    }
+
+    /// The defaults with `layers` applied in order, validated.
+    pub fn from_layers(layers: &[Layer]) -> Result<Self, ConfigError> {
         let mut tree = parse_toml(DEFAULT_TOML, "defaults")?;
-        if let Some(path) = file {
-            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-                path: path.display().to_string(),
-                source,
-            })?;
-            let user = parse_toml(&text, &path.display().to_string())?;
-            merge(&mut tree, user, "")?;
-        }
-        for item in overrides {
-            apply_override(&mut tree, item)?;
+        for layer in layers {
+            match layer {
+                Layer::File(path) => {
+                    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                        path: path.display().to_string(),
+                        source,
+                    })?;
+                    merge(&mut tree, parse_toml(&text, &path.display().to_string())?, "")?;
+                }
+                Layer::Scenario(text) => {
+                    let section = tree
+                        .get_mut("scenario")
+                        .ok_or_else(|| ConfigError::Invalid("defaults lack [scenario]".into()))?;
+                    merge(section, parse_toml(text, "scenario")?, "scenario")?;
+                }
+                Layer::Set(item) => apply_override(&mut tree, item)?,
+            }
         }
         let config: RunConfig = deserialize(tree, "the merged configuration")?;
         config.validate()?;
@@ -266,15 +293,7 @@ impl RunConfig {
 impl ScenarioConfig {
     /// Parses a scenario sent by the learner (or a scenario file), layered over the defaults.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
-        let mut tree = parse_toml(DEFAULT_TOML, "defaults")?;
-        let scenario_default = tree
-            .get_mut("scenario")
-            .ok_or_else(|| ConfigError::Invalid("defaults lack [scenario]".into()))?;
-        merge(scenario_default, parse_toml(text, "scenario")?, "scenario")?;
-        let scenario: ScenarioConfig =
-            deserialize(scenario_default.clone(), "the scenario configuration")?;
-        scenario.validate()?;
-        Ok(scenario)
+        Ok(RunConfig::from_layers(&[Layer::Scenario(text)])?.scenario)
     }
 
     pub fn to_toml(&self) -> String {

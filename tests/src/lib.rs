@@ -1,1 +1,246 @@
+//! Helpers for the workspace integration tests: run the real `learner` and `actor` binaries as
+//! separate processes on 127.0.0.1, scrape their metrics, and never leave a process behind.
 
+use std::collections::BTreeMap;
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+/// Directory of the binaries built alongside this test executable (`target/<profile>/`).
+pub fn bin_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    // target/<profile>/deps/<test> → target/<profile>
+    exe.parent().and_then(Path::parent).map(Path::to_path_buf).expect("target directory")
+}
+
+pub fn bin(name: &str) -> PathBuf {
+    let path = bin_dir().join(name);
+    assert!(
+        path.exists(),
+        "{} is missing: build the binaries first with `cargo build --release --bins` (`make test` does)",
+        path.display()
+    );
+    path
+}
+
+/// A directory removed on drop.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    pub fn new(label: &str) -> Self {
+        static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("junction-{label}-{}-{n}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("create temp dir");
+        TempDir(dir)
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        if std::env::var_os("JUNCTION_KEEP_TEST_DIRS").is_none() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+/// A child process that is terminated (SIGTERM, then SIGKILL) when dropped, including when a
+/// test panics; it also dies with the test process (PR_SET_PDEATHSIG).
+pub struct Process {
+    pub name: String,
+    child: Child,
+    log: PathBuf,
+}
+
+impl Process {
+    /// Starts `program` with `args`, stdout and stderr going to `<log_dir>/<name>.log`.
+    pub fn start(name: &str, program: &Path, args: &[String], log_dir: &Path) -> Process {
+        let log = log_dir.join(format!("{name}.log"));
+        let out = std::fs::File::create(&log).expect("create log file");
+        let err = out.try_clone().expect("clone log file");
+        let mut command = Command::new(program);
+        command.args(args).stdin(Stdio::null()).stdout(out).stderr(err).env("RUST_LOG", "info");
+        // SAFETY: prctl is async-signal-safe; it only asks the kernel to SIGKILL this child
+        // when the thread that spawned it (the test) dies.
+        unsafe {
+            command.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+                Ok(())
+            });
+        }
+        let child = command.spawn().unwrap_or_else(|e| panic!("starting {}: {e}", program.display()));
+        Process { name: name.to_string(), child, log }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// The last `lines` lines of the log, for assertion messages.
+    pub fn log_tail(&self, lines: usize) -> String {
+        let log = self.log();
+        let all: Vec<&str> = log.lines().collect();
+        format!("--- {} (last {lines} lines) ---\n{}", self.name, all[all.len().saturating_sub(lines)..].join("\n"))
+    }
+
+    pub fn try_exit(&mut self) -> Option<ExitStatus> {
+        self.child.try_wait().ok().flatten()
+    }
+
+    pub fn signal(&self, signal: i32) {
+        // SAFETY: plain kill(2) on our own child's pid.
+        unsafe {
+            libc::kill(self.child.id() as i32, signal);
+        }
+    }
+
+    /// Waits up to `timeout` for the process to exit on its own.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        let deadline = Instant::now() + timeout;
+        while Instant::now() < deadline {
+            if let Some(status) = self.try_exit() {
+                return Some(status);
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        None
+    }
+
+    /// SIGTERM, then SIGKILL after `grace`; returns the exit status.
+    pub fn stop(&mut self, grace: Duration) -> Option<ExitStatus> {
+        if let Some(status) = self.try_exit() {
+            return Some(status);
+        }
+        self.signal(libc::SIGTERM);
+        if let Some(status) = self.wait_exit(grace) {
+            return Some(status);
+        }
+        let _ = self.child.kill();
+        self.child.wait().ok()
+    }
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        self.stop(Duration::from_secs(5));
+    }
+}
+
+/// Addresses a learner bound (it writes them to `<run-dir>/endpoints.json`).
+#[derive(Debug, Clone)]
+pub struct Endpoints {
+    pub grpc: String,
+    pub metrics: String,
+}
+
+/// Starts `learner serve` on ephemeral loopback ports and waits until it serves.
+pub fn start_learner(run_dir: &Path, log_dir: &Path, extra: &[&str]) -> (Process, Endpoints) {
+    let mut args: Vec<String> = [
+        "serve",
+        "--addr",
+        "127.0.0.1:0",
+        "--metrics-addr",
+        "127.0.0.1:0",
+        "--run-dir",
+        &run_dir.display().to_string(),
+        "--device",
+        "cpu",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    args.extend(extra.iter().map(|s| s.to_string()));
+    let mut learner = Process::start("learner", &bin("learner"), &args, log_dir);
+    let endpoints_file = run_dir.join("endpoints.json");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Ok(text) = std::fs::read_to_string(&endpoints_file) {
+            let v: serde_json::Value = serde_json::from_str(&text).expect("endpoints.json is JSON");
+            if v["pid"].as_u64() == Some(u64::from(learner.pid())) {
+                let endpoints = Endpoints {
+                    grpc: v["grpc"].as_str().expect("grpc address").to_string(),
+                    metrics: v["metrics"].as_str().expect("metrics address").to_string(),
+                };
+                return (learner, endpoints);
+            }
+        }
+        if let Some(status) = learner.try_exit() {
+            panic!("learner exited early with {status}\n{}", learner.log_tail(40));
+        }
+        assert!(Instant::now() < deadline, "learner did not start within 60 s\n{}", learner.log_tail(40));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+pub fn start_actor(endpoints: &Endpoints, log_dir: &Path, name: &str, extra: &[&str]) -> Process {
+    let mut args = vec!["--learner".to_string(), format!("http://{}", endpoints.grpc)];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    Process::start(name, &bin("actor"), &args, log_dir)
+}
+
+/// A loopback port that was free a moment ago.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("free port").port()
+}
+
+/// GET http://<addr><path> with a bare HTTP/1.1 request; returns the body.
+pub fn http_get(addr: &str, path: &str) -> std::io::Result<String> {
+    let mut stream = TcpStream::connect(addr)?;
+    stream.set_read_timeout(Some(Duration::from_secs(5)))?;
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
+    let mut response = String::new();
+    stream.read_to_string(&mut response)?;
+    let (head, body) = response.split_once("\r\n\r\n").unwrap_or((&response, ""));
+    if !head.starts_with("HTTP/1.1 200") {
+        return Err(std::io::Error::other(format!("unexpected response: {head}")));
+    }
+    Ok(body.to_string())
+}
+
+/// Samples of a Prometheus text exposition: `name{labels}` → value.
+pub fn parse_metrics(text: &str) -> BTreeMap<String, f64> {
+    text.lines()
+        .filter(|line| !line.starts_with('#') && !line.trim().is_empty())
+        .filter_map(|line| {
+            let (key, value) = line.rsplit_once(' ')?;
+            Some((key.to_string(), value.parse().ok()?))
+        })
+        .collect()
+}
+
+pub fn scrape(addr: &str) -> BTreeMap<String, f64> {
+    http_get(addr, "/metrics").map(|body| parse_metrics(&body)).unwrap_or_default()
+}
+
+/// Polls `condition` every 200 ms until it holds or `timeout` passes.
+pub fn wait_until(timeout: Duration, mut condition: impl FnMut() -> bool) -> bool {
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        if condition() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    condition()
+}
+
+/// Sum of every sample of `name` (all label sets).
+pub fn metric_sum(metrics: &BTreeMap<String, f64>, name: &str) -> f64 {
+    metrics
+        .iter()
+        .filter(|(key, _)| *key == name || key.starts_with(&format!("{name}{{")))
+        .map(|(_, v)| v)
+        .sum()
+}

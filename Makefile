@@ -1,0 +1,28 @@
+# The two commands a new user needs (see README.md):
+#   make run    set up, build, train locally (learner + 2 actors over gRPC) for a few minutes
+#   make test   set up, build, run every test (this is what CI runs via .ci/run)
+SHELL := /bin/bash
+
+# tch builds against the PyTorch in the project-local venv (scripts/setup.sh installs it).
+export VIRTUAL_ENV := $(CURDIR)/.venv
+export PATH := $(CURDIR)/.venv/bin:$(PATH)
+export LIBTORCH_USE_PYTORCH := 1
+
+CARGO ?= cargo
+
+.PHONY: setup build run test bench
+
+setup:
+	@scripts/setup.sh
+
+build: setup
+	$(CARGO) build --release --workspace --bins
+
+run: build
+	scripts/run-local.sh
+
+test: build
+	$(CARGO) test --release --workspace
+
+bench: build
+	target/release/actor bench --scenario intersection
