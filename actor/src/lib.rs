@@ -1,1 +1,8 @@
+//! Junction's rollout actor: the traffic simulator, batched policy inference and the actor
+//! side of the transports.
 
+pub mod bench;
+pub mod grpc;
+pub mod metrics;
+pub mod rollout;
+pub mod sim;

@@ -14,12 +14,12 @@ pub const DEFAULT_TOML: &str = include_str!("default.toml");
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("cannot read config file {path}: {source}")]
+    #[error("cannot read {path}")]
     Read {
         path: String,
         source: std::io::Error,
     },
-    #[error("config {origin} is not valid TOML: {source}")]
+    #[error("{origin} is not a valid configuration")]
     Parse {
         origin: String,
         source: Box<toml::de::Error>,
@@ -226,11 +226,16 @@ impl RunConfig {
         for layer in layers {
             match layer {
                 Layer::File(path) => {
-                    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-                        path: path.display().to_string(),
-                        source,
-                    })?;
-                    merge(&mut tree, parse_toml(&text, &path.display().to_string())?, "")?;
+                    let text =
+                        std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                            path: path.display().to_string(),
+                            source,
+                        })?;
+                    merge(
+                        &mut tree,
+                        parse_toml(&text, &path.display().to_string())?,
+                        "",
+                    )?;
                 }
                 Layer::Scenario(text) => {
                     let section = tree

@@ -5,6 +5,7 @@
 pub mod config;
 pub mod fragment;
 pub mod policy;
+pub mod scenarios;
 pub mod spec;
 pub mod telemetry;
 pub mod weights;

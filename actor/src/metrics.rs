@@ -1,0 +1,59 @@
+//! The actor's Prometheus metrics (names in `junction_common::telemetry::names`).
+
+use prometheus::{Counter, IntCounter, IntGauge, Registry};
+
+use junction_common::telemetry::names;
+
+pub struct ActorMetrics {
+    pub registry: Registry,
+    pub env_steps: IntCounter,
+    pub agent_steps: IntCounter,
+    pub fragments_sent: IntCounter,
+    pub policy_version: IntGauge,
+    pub policy_switches: IntCounter,
+    pub inference_seconds: Counter,
+    pub simulation_seconds: Counter,
+}
+
+impl ActorMetrics {
+    pub fn new() -> Result<Self, prometheus::Error> {
+        let registry = Registry::new();
+        let counter = |name: &str, help: &str| -> Result<IntCounter, prometheus::Error> {
+            let c = IntCounter::new(name, help)?;
+            registry.register(Box::new(c.clone()))?;
+            Ok(c)
+        };
+        let seconds = |name: &str, help: &str| -> Result<Counter, prometheus::Error> {
+            let c = Counter::new(name, help)?;
+            registry.register(Box::new(c.clone()))?;
+            Ok(c)
+        };
+        let policy_version = IntGauge::new(
+            names::ACTOR_POLICY_VERSION,
+            "Policy version the actor is running.",
+        )?;
+        registry.register(Box::new(policy_version.clone()))?;
+        Ok(ActorMetrics {
+            env_steps: counter(names::ACTOR_ENV_STEPS, "Scene steps simulated.")?,
+            agent_steps: counter(names::ACTOR_AGENT_STEPS, "Agent-steps simulated.")?,
+            fragments_sent: counter(
+                names::ACTOR_FRAGMENTS_SENT,
+                "Rollout fragments handed to the transport.",
+            )?,
+            policy_version,
+            policy_switches: counter(
+                names::ACTOR_POLICY_SWITCHES,
+                "Times the actor switched to newer weights.",
+            )?,
+            inference_seconds: seconds(
+                names::ACTOR_INFERENCE_SECONDS,
+                "Time spent in batched policy inference.",
+            )?,
+            simulation_seconds: seconds(
+                names::ACTOR_SIMULATION_SECONDS,
+                "Time spent stepping scenes.",
+            )?,
+            registry,
+        })
+    }
+}

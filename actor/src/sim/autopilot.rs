@@ -1,0 +1,71 @@
+//! A scripted driver for tests and `actor bench`: pure-pursuit steering along each agent's
+//! route and a proportional speed controller that brakes for a vehicle close ahead. It does
+//! not negotiate the junction, so crossing traffic still crashes now and then.
+
+use parry2d::math::Vec2;
+
+use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
+
+use super::Scene;
+use super::network::{RoadNetwork, Route};
+use super::vehicle::{MAX_STEER_RAD, WHEELBASE};
+
+/// Brake when a lidar beam within this angle of straight ahead sees a body closer than
+/// `FOLLOW_GAP` metres.
+const FRONT_CONE_RAD: f32 = 0.25;
+const FOLLOW_GAP: f32 = 8.0;
+/// Bends are taken at the speed that keeps lateral acceleration at this (m/s²).
+const COMFORT_LATERAL_ACCEL: f32 = 3.0;
+
+/// The centre-line point `progress` metres along `route` (extrapolated past its end).
+pub fn route_point(network: &dyn RoadNetwork, route: &Route, progress: f32) -> Vec2 {
+    let i = route
+        .offsets
+        .iter()
+        .rposition(|&o| o <= progress)
+        .unwrap_or(0);
+    network.lanes()[route.lanes[i]].point(progress - route.offsets[i])
+}
+
+/// Writes `[steer, throttle_brake]` for every alive slot into `out` (zeros elsewhere).
+pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) {
+    out.fill(0.0);
+    let obs_dim = scene.obs_dim();
+    let beams = scene.config().sensors.lidar_beams;
+    let range = scene.config().sensors.lidar_range;
+    let beam_step = std::f32::consts::TAU / beams as f32;
+    let cone = (FRONT_CONE_RAD / beam_step) as usize;
+    for slot in 0..scene.slots() {
+        let Some(car) = scene.car(slot) else { continue };
+        let route = &scene.network().routes()[car.route];
+        let lookahead = 4.0 + 0.8 * car.kin.speed;
+        let target = route_point(scene.network(), route, car.progress + lookahead);
+        let forward = Vec2::from_angle(car.kin.heading);
+        let rel = target - car.kin.position;
+        let alpha = forward.perp_dot(rel).atan2(rel.dot(forward));
+        let curvature = 2.0 * alpha.sin() / rel.length().max(1e-3);
+        let steer_angle = (curvature * WHEELBASE).atan();
+        // Paper convention: +1 steers right, i.e. clockwise.
+        let steer = (-steer_angle / MAX_STEER_RAD).clamp(-1.0, 1.0);
+        let lidar = &scene.observations()[slot * obs_dim + LIDAR_OFFSET..(slot + 1) * obs_dim];
+        let front = (0..=cone)
+            .flat_map(|k| [k, (beams - k) % beams])
+            .map(|b| lidar[b] * range)
+            .fold(f32::INFINITY, f32::min);
+        // Slow down for the bend of this lane or the next one.
+        let bend_speed = route.lanes[car.lane_index..route.lanes.len().min(car.lane_index + 2)]
+            .iter()
+            .map(|&l| scene.network().lanes()[l].bend().0.abs())
+            .filter(|&r| r > 0.0)
+            .map(|r| (COMFORT_LATERAL_ACCEL * r).sqrt())
+            .fold(f32::INFINITY, f32::min);
+        let desired = if front < FOLLOW_GAP {
+            0.0
+        } else {
+            target_speed_mps.min(bend_speed)
+        };
+        let throttle = (0.5 * (desired - car.kin.speed)).clamp(-1.0, 1.0);
+        out[slot * ACTION_DIM] = steer;
+        out[slot * ACTION_DIM + 1] = throttle;
+    }
+}

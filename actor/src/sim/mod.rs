@@ -1,0 +1,34 @@
+//! The traffic simulator: pure and deterministic (no I/O, no clock, no global state; seeded
+//! RNG). `Scene::new(config, seed)` builds a scene; `scene.step(&actions)` advances it one
+//! decision step and returns rewards, costs, dones and finished episodes; observations, the
+//! alive mask and neighbourhoods describe the state the next actions respond to.
+//!
+//! See `docs/SIMULATOR.md` for the model and `docs/OBSERVATION.md` for the observation layout.
+
+mod angle;
+pub mod autopilot;
+mod grid;
+pub mod intersection;
+pub mod lane;
+mod lidar;
+pub mod network;
+pub mod observation;
+mod scene;
+pub mod vehicle;
+
+pub use scene::{FinishedEpisode, Scene, StepResult, VehicleView};
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SimError {
+    #[error("invalid scenario: {0}")]
+    Config(String),
+    #[error("invalid road geometry: {0}")]
+    Geometry(String),
+    #[error(
+        "scenario.agents = {agents} exceeds the {spawn_points} spawn points of this road layout"
+    )]
+    TooManyAgents { agents: usize, spawn_points: usize },
+}
+
+#[cfg(test)]
+mod tests;

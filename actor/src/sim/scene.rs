@@ -1,0 +1,567 @@
+//! A traffic scene: agents in slots driving routes through a road network, an endless flow
+//! (every car that leaves is replaced when a spawn point is free), observations, Reward I,
+//! costs, neighbourhoods and per-episode statistics. Pure: state changes only in `step`.
+
+use parry2d::math::{Pose, Vec2};
+use parry2d::query::intersection_test;
+use parry2d::shape::Cuboid;
+use rand::seq::index::sample;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use junction_common::config::{ScenarioConfig, SceneKind};
+use junction_common::fragment::{EpisodeStats, Outcome};
+use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
+
+use super::SimError;
+use super::grid::Grid;
+use super::intersection::Intersection;
+use super::lidar;
+use super::network::{Entry, RoadNetwork};
+use super::observation::{self, RoutePosition};
+use super::vehicle::{BOUNDING_RADIUS, Kinematics, LENGTH, MAX_SPEED, WIDTH};
+
+/// A destination counts as reached within this distance of its lane's end (MetaDrive: 5 m).
+const ARRIVAL_TOLERANCE: f32 = 5.0;
+/// Grid cell size: a few car lengths, so collision queries touch a handful of cells.
+const GRID_CELL: f32 = 10.0;
+
+/// One learning agent.
+#[derive(Debug, Clone)]
+pub(super) struct Car {
+    pub kin: Kinematics,
+    pub route: usize,
+    pub lane_index: usize,
+    pub s: f32,
+    pub lateral: f32,
+    /// Distance travelled along the route (metres).
+    pub progress: f32,
+    pub age: u32,
+    total_reward: f32,
+    abs_accel_sum: f32,
+    max_abs_accel: f32,
+    collisions: u32,
+}
+
+/// A crashed car left on the road for a while.
+#[derive(Debug, Clone)]
+struct Obstacle {
+    kin: Kinematics,
+    steps_left: u32,
+}
+
+/// An episode that ended in `step`, in slot `slot`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FinishedEpisode {
+    pub slot: usize,
+    pub stats: EpisodeStats,
+}
+
+/// What one `step` produced, per slot (0 / false for slots that did not act).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StepResult {
+    pub rewards: Vec<f32>,
+    pub costs: Vec<f32>,
+    pub dones: Vec<bool>,
+    pub finished: Vec<FinishedEpisode>,
+    /// Contact events this step (vehicle–vehicle or vehicle–obstacle pairs).
+    pub collisions: u32,
+}
+
+/// A body, for rendering and tests.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VehicleView {
+    pub position: Vec2,
+    pub heading: f32,
+    pub speed: f32,
+    pub length: f32,
+    pub width: f32,
+    /// The agent slot, or None for a crashed car left as an obstacle.
+    pub slot: Option<usize>,
+}
+
+pub struct Scene {
+    config: ScenarioConfig,
+    network: Box<dyn RoadNetwork>,
+    rng: ChaCha8Rng,
+    cars: Vec<Option<Car>>,
+    obstacles: Vec<Obstacle>,
+    steps: u32,
+    /// Every spawn point: (entry index, distance along the entry lane).
+    spawn_points: Vec<(usize, f32)>,
+    observations: Vec<f32>,
+    alive: Vec<bool>,
+    neighbour_offsets: Vec<u32>,
+    neighbour_ids: Vec<u32>,
+    result: StepResult,
+    // Scratch space reused every step.
+    grid: Grid,
+    bodies: Vec<(Vec2, f32, Option<usize>)>,
+    crashed: Vec<bool>,
+    lidar: Vec<f32>,
+}
+
+impl Scene {
+    pub fn new(config: &ScenarioConfig, seed: u64) -> Result<Scene, SimError> {
+        config
+            .validate()
+            .map_err(|e| SimError::Config(e.to_string()))?;
+        let network: Box<dyn RoadNetwork> = match config.kind {
+            SceneKind::Intersection => Box::new(Intersection::new(&config.intersection)?),
+        };
+        let spacing = config.spawn.slot_spacing;
+        let mut spawn_points = Vec::new();
+        for (e, entry) in network.entries().iter().enumerate() {
+            let length = network.lanes()[entry.lane].length();
+            let mut k = 0;
+            while spacing * (k as f32 + 1.0) <= length {
+                spawn_points.push((e, spacing * (k as f32 + 0.5)));
+                k += 1;
+            }
+        }
+        if config.agents > spawn_points.len() {
+            return Err(SimError::TooManyAgents {
+                agents: config.agents,
+                spawn_points: spawn_points.len(),
+            });
+        }
+        let extent = network
+            .lanes()
+            .iter()
+            .flat_map(|l| [l.start(), l.end()])
+            .fold(0.0f32, |m, p| m.max(p.x.abs()).max(p.y.abs()));
+        let slots = config.agents;
+        let mut scene = Scene {
+            config: config.clone(),
+            network,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            cars: vec![None; slots],
+            obstacles: Vec::new(),
+            steps: 0,
+            spawn_points,
+            observations: vec![0.0; slots * config.obs_dim()],
+            alive: vec![false; slots],
+            neighbour_offsets: vec![0; slots + 1],
+            neighbour_ids: Vec::new(),
+            result: StepResult {
+                rewards: vec![0.0; slots],
+                costs: vec![0.0; slots],
+                dones: vec![false; slots],
+                ..StepResult::default()
+            },
+            grid: Grid::new(extent + GRID_CELL, GRID_CELL),
+            bodies: Vec::new(),
+            crashed: vec![false; slots],
+            lidar: vec![0.0; config.sensors.lidar_beams],
+        };
+        scene.reset();
+        Ok(scene)
+    }
+
+    pub fn config(&self) -> &ScenarioConfig {
+        &self.config
+    }
+
+    pub fn slots(&self) -> usize {
+        self.cars.len()
+    }
+
+    pub fn obs_dim(&self) -> usize {
+        self.config.obs_dim()
+    }
+
+    pub fn observations(&self) -> &[f32] {
+        &self.observations
+    }
+
+    pub fn alive(&self) -> &[bool] {
+        &self.alive
+    }
+
+    pub fn neighbours(&self) -> (&[u32], &[u32]) {
+        (&self.neighbour_offsets, &self.neighbour_ids)
+    }
+
+    pub fn steps_since_reset(&self) -> u32 {
+        self.steps
+    }
+
+    pub fn network(&self) -> &dyn RoadNetwork {
+        self.network.as_ref()
+    }
+
+    pub(super) fn car(&self, slot: usize) -> Option<&Car> {
+        self.cars.get(slot).and_then(Option::as_ref)
+    }
+
+    pub fn vehicles(&self) -> impl Iterator<Item = VehicleView> + '_ {
+        let view = |kin: &Kinematics, slot| VehicleView {
+            position: kin.position,
+            heading: kin.heading,
+            speed: kin.speed,
+            length: LENGTH,
+            width: WIDTH,
+            slot,
+        };
+        let cars = self
+            .cars
+            .iter()
+            .enumerate()
+            .filter_map(move |(slot, c)| c.as_ref().map(|c| view(&c.kin, Some(slot))));
+        cars.chain(self.obstacles.iter().map(move |o| view(&o.kin, None)))
+    }
+
+    /// Advances one decision step; see [`StepResult`].
+    pub fn step(&mut self, actions: &[f32]) -> &StepResult {
+        let slots = self.slots();
+        self.result.rewards.fill(0.0);
+        self.result.costs.fill(0.0);
+        self.result.dones.fill(false);
+        self.result.finished.clear();
+        self.result.collisions = 0;
+        let dt = self.config.decision_dt;
+
+        // Move every agent and follow its route.
+        let mut progress_gain = vec![0.0f32; slots];
+        let mut accel = vec![0.0f32; slots];
+        for (slot, car) in self.cars.iter_mut().enumerate() {
+            let Some(car) = car else { continue };
+            let action = [
+                actions.get(slot * ACTION_DIM).copied().unwrap_or(0.0),
+                actions.get(slot * ACTION_DIM + 1).copied().unwrap_or(0.0),
+            ];
+            let speed_before = car.kin.speed;
+            car.kin.advance(action, dt, self.config.substeps);
+            let before = car.progress;
+            track_route(car, self.network.as_ref());
+            progress_gain[slot] = car.progress - before;
+            accel[slot] = (car.kin.speed - speed_before) / dt;
+            car.age += 1;
+        }
+        self.obstacles.retain_mut(|o| {
+            o.steps_left = o.steps_left.saturating_sub(1);
+            o.steps_left > 0
+        });
+
+        self.detect_collisions();
+
+        // Outcomes, rewards, costs.
+        let reward = self.config.reward.clone();
+        let horizon_reached = self.steps + 1 >= self.config.horizon;
+        for slot in 0..slots {
+            let Some(car) = self.cars[slot].as_mut() else {
+                continue;
+            };
+            let route = &self.network.routes()[car.route];
+            let on_final_lane = car.lane_index + 1 == route.lanes.len();
+            let final_length = self.network.lanes()[route.lanes[car.lane_index]].length();
+            let outcome = if self.crashed[slot] {
+                Some(Outcome::Crash)
+            } else if car
+                .kin
+                .corners()
+                .iter()
+                .any(|&c| !self.network.on_road(c, car.kin.heading))
+            {
+                Some(Outcome::OutOfRoad)
+            } else if on_final_lane && car.s >= final_length - ARRIVAL_TOLERANCE {
+                Some(Outcome::Success)
+            } else if car.age >= self.config.agent_horizon || horizon_reached {
+                Some(Outcome::Timeout)
+            } else {
+                None
+            };
+            let r = match outcome {
+                Some(Outcome::Success) => reward.success,
+                Some(Outcome::Crash) => reward.crash,
+                Some(Outcome::OutOfRoad) => reward.out_of_road,
+                Some(Outcome::Timeout) | None => {
+                    reward.displacement * progress_gain[slot]
+                        + reward.speed * car.kin.speed / MAX_SPEED
+                }
+            };
+            self.result.rewards[slot] = r;
+            if self.crashed[slot] {
+                self.result.costs[slot] = self.config.cost.collision;
+                car.collisions += 1;
+            }
+            car.total_reward += r;
+            car.abs_accel_sum += accel[slot].abs();
+            car.max_abs_accel = car.max_abs_accel.max(accel[slot].abs());
+            if let Some(outcome) = outcome {
+                self.result.dones[slot] = true;
+                self.result.finished.push(FinishedEpisode {
+                    slot,
+                    stats: EpisodeStats {
+                        outcome,
+                        length: car.age,
+                        total_reward: car.total_reward,
+                        mean_abs_accel: car.abs_accel_sum / car.age.max(1) as f32,
+                        max_abs_accel: car.max_abs_accel,
+                        collisions: car.collisions,
+                    },
+                });
+                if outcome == Outcome::Crash && self.config.crash_obstacle_steps > 0 {
+                    self.obstacles.push(Obstacle {
+                        kin: car.kin,
+                        steps_left: self.config.crash_obstacle_steps,
+                    });
+                }
+                self.cars[slot] = None;
+            }
+        }
+
+        self.steps += 1;
+        if self.steps >= self.config.horizon {
+            self.reset();
+        } else {
+            self.respawn();
+            self.refresh();
+        }
+        &self.result
+    }
+
+    /// Clears the road and spawns `agents` cars on distinct spawn points.
+    fn reset(&mut self) {
+        self.steps = 0;
+        self.obstacles.clear();
+        self.cars.iter_mut().for_each(|c| *c = None);
+        let chosen = sample(&mut self.rng, self.spawn_points.len(), self.cars.len());
+        for (slot, point) in chosen.into_iter().enumerate() {
+            let (entry, s) = self.spawn_points[point];
+            self.cars[slot] = Some(self.spawn_car(entry, s));
+        }
+        self.refresh();
+    }
+
+    /// Fills empty slots with new cars at the first spawn point of lanes whose start is clear.
+    fn respawn(&mut self) {
+        let spacing = self.config.spawn.slot_spacing;
+        for slot in 0..self.slots() {
+            if self.cars[slot].is_some() {
+                continue;
+            }
+            let free: Vec<usize> = (0..self.network.entries().len())
+                .filter(|&e| self.spawn_point_clear(e, spacing / 2.0))
+                .collect();
+            if free.is_empty() {
+                return;
+            }
+            let entry = free[self.rng.gen_range(0..free.len())];
+            self.cars[slot] = Some(self.spawn_car(entry, spacing / 2.0));
+        }
+    }
+
+    fn spawn_point_clear(&self, entry: usize, s: f32) -> bool {
+        let lane = &self.network.lanes()[self.network.entries()[entry].lane];
+        let spawn = &self.config.spawn;
+        let area = Cuboid::new(Vec2::new(
+            spawn.respawn_clear_length / 2.0,
+            spawn.respawn_clear_width / 2.0,
+        ));
+        let area_pose = Pose::new(lane.point(s), lane.heading(s));
+        let reach = area.half_extents.length() + BOUNDING_RADIUS;
+        let body = Cuboid::new(Vec2::new(LENGTH / 2.0, WIDTH / 2.0));
+        self.vehicles().all(|v| {
+            (v.position - lane.point(s)).length() > reach
+                || !intersection_test(&area_pose, &area, &Pose::new(v.position, v.heading), &body)
+                    .map(|i| i.intersecting)
+                    .unwrap_or(true)
+        })
+    }
+
+    fn spawn_car(&mut self, entry_index: usize, s: f32) -> Car {
+        let Entry { lane, routes } = &self.network.entries()[entry_index];
+        let route = routes[self.rng.gen_range(0..routes.len())];
+        let spawn = &self.config.spawn;
+        let along = s + jitter(&mut self.rng, spawn.longitudinal_jitter);
+        let across = jitter(&mut self.rng, spawn.lateral_jitter);
+        let lane = &self.network.lanes()[*lane];
+        let heading = lane.heading(along);
+        let position = lane.point(along) + Vec2::from_angle(heading).perp() * across;
+        let mut car = Car {
+            kin: Kinematics::new(position, heading, spawn.initial_speed),
+            route,
+            lane_index: 0,
+            s: 0.0,
+            lateral: 0.0,
+            progress: 0.0,
+            age: 0,
+            total_reward: 0.0,
+            abs_accel_sum: 0.0,
+            max_abs_accel: 0.0,
+            collisions: 0,
+        };
+        track_route(&mut car, self.network.as_ref());
+        car
+    }
+
+    fn rebuild_bodies(&mut self) {
+        self.bodies.clear();
+        for (slot, car) in self.cars.iter().enumerate() {
+            if let Some(car) = car {
+                self.bodies
+                    .push((car.kin.position, car.kin.heading, Some(slot)));
+            }
+        }
+        for o in &self.obstacles {
+            self.bodies.push((o.kin.position, o.kin.heading, None));
+        }
+        self.grid.rebuild(self.bodies.iter().map(|b| b.0));
+    }
+
+    /// Marks every agent touching another body as crashed; counts contact pairs.
+    fn detect_collisions(&mut self) {
+        self.crashed.fill(false);
+        self.rebuild_bodies();
+        let shape = Cuboid::new(Vec2::new(LENGTH / 2.0, WIDTH / 2.0));
+        let mut contacts = 0;
+        let bodies = &self.bodies;
+        let crashed = &mut self.crashed;
+        for (i, &(p, h, slot)) in bodies.iter().enumerate() {
+            if slot.is_none() {
+                continue; // obstacles do not move: their contacts are found from the agent's side
+            }
+            self.grid.for_each_near(p, 2.0 * BOUNDING_RADIUS, |j| {
+                let (q, g, other) = bodies[j];
+                // Each agent pair once (i < j); agent–obstacle pairs from the agent.
+                if j == i || (other.is_some() && j < i) || (p - q).length() > 2.0 * BOUNDING_RADIUS
+                {
+                    return;
+                }
+                let touching =
+                    intersection_test(&Pose::new(p, h), &shape, &Pose::new(q, g), &shape)
+                        .map(|r| r.intersecting)
+                        .unwrap_or(false);
+                if touching {
+                    contacts += 1;
+                    if let Some(s) = slot {
+                        crashed[s] = true;
+                    }
+                    if let Some(o) = other {
+                        crashed[o] = true;
+                    }
+                }
+            });
+        }
+        self.result.collisions = contacts;
+    }
+
+    /// Recomputes observations, the alive mask and neighbourhoods for the current state.
+    fn refresh(&mut self) {
+        self.rebuild_bodies();
+        let obs_dim = self.obs_dim();
+        let range = self.config.sensors.lidar_range;
+        let radius = self.config.neighbour_radius;
+        self.neighbour_ids.clear();
+        self.neighbour_offsets[0] = 0;
+        let mut neighbours = Vec::new();
+        for slot in 0..self.slots() {
+            let row = &mut self.observations[slot * obs_dim..(slot + 1) * obs_dim];
+            let Some(car) = self.cars[slot].as_ref() else {
+                row.fill(0.0);
+                self.alive[slot] = false;
+                self.neighbour_offsets[slot + 1] = self.neighbour_ids.len() as u32;
+                continue;
+            };
+            self.alive[slot] = true;
+            let at = RoutePosition {
+                route: &self.network.routes()[car.route],
+                lane_index: car.lane_index,
+                s: car.s,
+                lateral: car.lateral,
+            };
+            observation::write_state(row, &car.kin, &at, self.network.lanes());
+            let (p, bodies, grid) = (car.kin.position, &self.bodies, &self.grid);
+            let mut near = Vec::new();
+            grid.for_each_near(p, range + BOUNDING_RADIUS, |j| {
+                if bodies[j].2 != Some(slot) {
+                    near.push(j);
+                }
+            });
+            lidar::scan(
+                p,
+                car.kin.heading,
+                range,
+                near.iter().map(|&j| (bodies[j].0, bodies[j].1)),
+                &mut self.lidar,
+            );
+            debug_assert_eq!(row.len() - LIDAR_OFFSET, self.lidar.len());
+            observation::write_lidar(row, &self.lidar, range);
+            neighbours.clear();
+            grid.for_each_near(p, radius, |j| {
+                if let Some(other) = bodies[j].2 {
+                    if other != slot && (bodies[j].0 - p).length() <= radius {
+                        neighbours.push(other as u32);
+                    }
+                }
+            });
+            neighbours.sort_unstable();
+            self.neighbour_ids.extend_from_slice(&neighbours);
+            self.neighbour_offsets[slot + 1] = self.neighbour_ids.len() as u32;
+        }
+    }
+}
+
+#[cfg(test)]
+impl Scene {
+    /// Removes every car and obstacle and restarts the horizon (test set-up).
+    pub(super) fn clear(&mut self) {
+        self.steps = 0;
+        self.cars.iter_mut().for_each(|c| *c = None);
+        self.obstacles.clear();
+        self.refresh();
+    }
+
+    /// Puts a car in `slot` on `route`, `progress` metres along it, `lateral` metres left of the
+    /// centre line, heading along the lane plus `heading_offset`.
+    pub(super) fn place(
+        &mut self,
+        slot: usize,
+        route: usize,
+        progress: f32,
+        lateral: f32,
+        heading_offset: f32,
+        speed: f32,
+    ) {
+        let r = &self.network.routes()[route];
+        let i = r.offsets.iter().rposition(|&o| o <= progress).unwrap_or(0);
+        let lane = &self.network.lanes()[r.lanes[i]];
+        let s = progress - r.offsets[i];
+        let heading = lane.heading(s);
+        let position = lane.point(s) + Vec2::from_angle(heading).perp() * lateral;
+        let mut car = self.spawn_car(0, 0.0);
+        car.route = route;
+        car.lane_index = 0;
+        car.kin = Kinematics::new(position, heading + heading_offset, speed);
+        track_route(&mut car, self.network.as_ref());
+        car.progress = progress;
+        self.cars[slot] = Some(car);
+        self.refresh();
+    }
+}
+
+fn jitter(rng: &mut ChaCha8Rng, amplitude: f32) -> f32 {
+    if amplitude > 0.0 {
+        rng.gen_range(-amplitude..=amplitude)
+    } else {
+        0.0
+    }
+}
+
+/// Updates the car's lane, lane coordinates and route progress from its position.
+fn track_route(car: &mut Car, network: &dyn RoadNetwork) {
+    let route = &network.routes()[car.route];
+    loop {
+        let lane = &network.lanes()[route.lanes[car.lane_index]];
+        let (s, lateral) = lane.project(car.kin.position);
+        if s > lane.length() && car.lane_index + 1 < route.lanes.len() {
+            car.lane_index += 1;
+            continue;
+        }
+        car.s = s;
+        car.lateral = lateral;
+        car.progress = route.offsets[car.lane_index] + s;
+        return;
+    }
+}

@@ -1,0 +1,333 @@
+//! Scene-level tests: collisions, leaving the road, arrival, respawn, determinism, bounds.
+
+use std::collections::HashMap;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use junction_common::config::ScenarioConfig;
+use junction_common::fragment::Outcome;
+use junction_common::spec::ACTION_DIM;
+
+use super::autopilot::autopilot_actions;
+use super::network::RoadNetwork;
+use super::{Scene, SimError};
+
+fn config(agents: usize) -> ScenarioConfig {
+    ScenarioConfig {
+        agents,
+        ..ScenarioConfig::default()
+    }
+}
+
+/// The route entering from `arm` (0 east, 1 north, 2 west, 3 south) with a connector that
+/// turns by `sweep_sign` (0 straight, +1 left, −1 right).
+fn route_from(network: &dyn RoadNetwork, arm: usize, sweep_sign: f32) -> usize {
+    let arm_direction = parry2d::math::Vec2::from_angle(arm as f32 * std::f32::consts::FRAC_PI_2);
+    network
+        .routes()
+        .iter()
+        .position(|r| {
+            let start = network.lanes()[r.lanes[0]].start();
+            let (_, sweep) = network.lanes()[r.lanes[1]].bend();
+            start.normalize().dot(arm_direction) > 0.9
+                && (sweep.signum() * sweep_sign.abs()) == sweep_sign
+                && (sweep_sign != 0.0 || sweep == 0.0)
+        })
+        .expect("route exists")
+}
+
+fn run_until_done(
+    scene: &mut Scene,
+    slot: usize,
+    actions: impl Fn(&Scene) -> Vec<f32>,
+    max_steps: usize,
+) -> (Outcome, f32, f32) {
+    for _ in 0..max_steps {
+        let a = actions(scene);
+        let result = scene.step(&a).clone();
+        if result.dones[slot] {
+            let episode = result
+                .finished
+                .iter()
+                .find(|e| e.slot == slot)
+                .expect("finished episode reported");
+            return (
+                episode.stats.outcome,
+                result.rewards[slot],
+                result.costs[slot],
+            );
+        }
+    }
+    panic!("slot {slot} did not finish within {max_steps} steps");
+}
+
+#[test]
+fn two_cars_on_crossing_paths_collide() {
+    let mut scene = Scene::new(&config(2), 1).unwrap();
+    scene.clear();
+    let east = route_from(scene.network(), 0, 0.0);
+    let north = route_from(scene.network(), 1, 0.0);
+    // Both 2 m before the junction box on lane 0 of two adjacent arms: their paths cross
+    // 20.75 m ahead of each, and at equal speeds they get there together.
+    scene.place(0, east, 58.0, 0.0, 0.0, 8.0);
+    scene.place(1, north, 58.0, 0.0, 0.0, 8.0);
+    let mut crashed = [false; 2];
+    for _ in 0..60 {
+        let result = scene.step(&[0.0, 0.3, 0.0, 0.3]).clone();
+        for slot in 0..2 {
+            if result.dones[slot] {
+                let e = result.finished.iter().find(|e| e.slot == slot).unwrap();
+                assert_eq!(e.stats.outcome, Outcome::Crash, "slot {slot}");
+                assert_eq!(result.rewards[slot], scene.config().reward.crash);
+                assert_eq!(result.costs[slot], scene.config().cost.collision);
+                assert_eq!(e.stats.collisions, 1);
+                crashed[slot] = true;
+            }
+        }
+        if crashed == [true, true] {
+            assert!(result.collisions >= 1);
+            // The wreck stays as an obstacle.
+            assert_eq!(scene.vehicles().filter(|v| v.slot.is_none()).count(), 2);
+            return;
+        }
+    }
+    panic!("the cars never collided: {crashed:?}");
+}
+
+#[test]
+fn leaving_the_road_and_crossing_the_centre_line_end_out_of_road() {
+    let mut scene = Scene::new(&config(1), 2).unwrap();
+    scene.clear();
+    let route = route_from(scene.network(), 0, 0.0);
+    // Full right lock on an approach: off the kerb side.
+    scene.place(0, route, 10.0, 0.0, 0.0, 8.0);
+    let (outcome, reward, _) = run_until_done(&mut scene, 0, |_| vec![1.0, 0.5], 100);
+    assert_eq!(outcome, Outcome::OutOfRoad);
+    assert_eq!(reward, scene.config().reward.out_of_road);
+    // Full left lock: across the solid centre line into oncoming lanes.
+    scene.clear();
+    scene.place(0, route, 10.0, 0.0, 0.0, 8.0);
+    let (outcome, _, _) = run_until_done(&mut scene, 0, |_| vec![-1.0, 0.5], 100);
+    assert_eq!(outcome, Outcome::OutOfRoad);
+}
+
+#[test]
+fn the_autopilot_arrives_on_every_route_from_every_arm() {
+    let mut scene = Scene::new(&config(1), 3).unwrap();
+    let routes = scene.network().routes().len();
+    for route in 0..routes {
+        scene.clear();
+        scene.place(0, route, 5.0, 0.0, 0.0, 0.0);
+        let (outcome, reward, cost) = run_until_done(
+            &mut scene,
+            0,
+            |s| {
+                let mut a = vec![0.0; s.slots() * ACTION_DIM];
+                autopilot_actions(s, 8.0, &mut a);
+                a
+            },
+            600,
+        );
+        assert_eq!(outcome, Outcome::Success, "route {route}");
+        assert_eq!((reward, cost), (scene.config().reward.success, 0.0));
+    }
+}
+
+#[test]
+fn respawn_keeps_the_flow_and_every_agent_ends_exactly_once() {
+    let mut scene = Scene::new(&config(30), 4).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut actions = vec![0.0; 30 * ACTION_DIM];
+    let (mut ended, mut spawned) = (0usize, scene.alive().iter().filter(|a| **a).count());
+    let mut outcomes: HashMap<Outcome, usize> = HashMap::new();
+    for step in 0..900 {
+        autopilot_actions(&scene, 9.0, &mut actions);
+        if step % 3 == 0 {
+            // Sloppy drivers too, so every outcome occurs.
+            for a in actions.iter_mut() {
+                *a += rng.gen_range(-0.3..0.3);
+            }
+        }
+        let alive_before: Vec<bool> = scene.alive().to_vec();
+        let result = scene.step(&actions).clone();
+        for (slot, &done) in result.dones.iter().enumerate() {
+            assert!(
+                !done || alive_before[slot],
+                "slot {slot} done without having acted"
+            );
+        }
+        assert_eq!(
+            result.finished.len(),
+            result.dones.iter().filter(|d| **d).count(),
+            "one episode per done"
+        );
+        ended += result.finished.len();
+        for e in &result.finished {
+            *outcomes.entry(e.stats.outcome).or_default() += 1;
+        }
+        let alive_after = scene.alive().iter().filter(|a| **a).count();
+        // New agents are those alive now in slots that were empty or finished.
+        spawned += (0..30)
+            .filter(|&s| scene.alive()[s] && (!alive_before[s] || result.dones[s]))
+            .count();
+        assert!(alive_after <= 30);
+        assert_eq!(spawned - ended, alive_after, "conservation at step {step}");
+    }
+    assert!(ended > 60, "a real flow: {ended} episodes ended");
+    assert!(
+        outcomes.get(&Outcome::Success).copied().unwrap_or(0) > 10,
+        "{outcomes:?}"
+    );
+    assert!(
+        outcomes.get(&Outcome::Crash).copied().unwrap_or(0)
+            + outcomes.get(&Outcome::OutOfRoad).copied().unwrap_or(0)
+            > 0,
+        "{outcomes:?}"
+    );
+}
+
+#[test]
+fn cars_never_spawn_overlapping() {
+    for seed in 0..20 {
+        let mut scene = Scene::new(&config(30), seed).unwrap();
+        let mut actions = vec![0.0; 30 * ACTION_DIM];
+        for _ in 0..150 {
+            let before: Vec<bool> = scene.alive().to_vec();
+            autopilot_actions(&scene, 10.0, &mut actions);
+            let result = scene.step(&actions).clone();
+            // A car spawned this step (or at reset) must not touch anything.
+            let new: Vec<usize> = (0..30)
+                .filter(|&s| scene.alive()[s] && (!before[s] || result.dones[s]))
+                .collect();
+            let bodies: Vec<_> = scene.vehicles().collect();
+            for v in bodies
+                .iter()
+                .filter(|v| v.slot.is_some_and(|s| new.contains(&s)))
+            {
+                for w in bodies.iter().filter(|w| w.slot != v.slot) {
+                    assert!(
+                        (v.position - w.position).length() > 4.6
+                            || (v.position - w.position)
+                                .dot(parry2d::math::Vec2::from_angle(v.heading).perp())
+                                .abs()
+                                > 1.852,
+                        "seed {seed}: spawned car at {:?} overlaps {:?}",
+                        v.position,
+                        w.position
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn same_seed_same_trajectories_and_different_seeds_differ() {
+    let run = |seed: u64| {
+        let mut scene = Scene::new(&config(20), seed).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut trace = Vec::new();
+        for _ in 0..300 {
+            let actions: Vec<f32> = (0..20 * ACTION_DIM)
+                .map(|_| rng.gen_range(-1.0..1.0))
+                .collect();
+            trace.extend_from_slice(scene.observations());
+            let r = scene.step(&actions);
+            trace.extend_from_slice(&r.rewards);
+            trace.extend(r.dones.iter().map(|&d| d as u8 as f32));
+        }
+        trace
+    };
+    let a = run(11);
+    assert_eq!(a, run(11));
+    assert_ne!(a, run(12));
+}
+
+#[test]
+fn observations_stay_in_the_unit_interval_under_random_driving() {
+    let mut scene = Scene::new(&config(30), 6).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for step in 0..500 {
+        let actions: Vec<f32> = (0..30 * ACTION_DIM)
+            .map(|_| rng.gen_range(-1.5..1.5))
+            .collect();
+        scene.step(&actions);
+        for (i, v) in scene.observations().iter().enumerate() {
+            assert!(
+                (0.0..=1.0).contains(v),
+                "step {step}: obs[{}][{}] = {v}",
+                i / scene.obs_dim(),
+                i % scene.obs_dim()
+            );
+        }
+    }
+}
+
+#[test]
+fn the_scene_horizon_ends_every_agent_as_a_timeout_and_resets() {
+    let mut cfg = config(10);
+    cfg.horizon = 20;
+    let mut scene = Scene::new(&cfg, 7).unwrap();
+    let stopped = vec![0.0, -1.0].repeat(10);
+    for _ in 0..19 {
+        assert!(
+            scene.step(&stopped).finished.is_empty(),
+            "parked cars do not finish early"
+        );
+    }
+    let result = scene.step(&stopped).clone();
+    assert_eq!(result.finished.len(), 10);
+    assert!(
+        result
+            .finished
+            .iter()
+            .all(|e| e.stats.outcome == Outcome::Timeout && e.stats.length == 20)
+    );
+    assert_eq!(scene.steps_since_reset(), 0);
+    assert_eq!(
+        scene.alive().iter().filter(|a| **a).count(),
+        10,
+        "a fresh scene"
+    );
+}
+
+#[test]
+fn more_agents_than_spawn_points_is_an_error() {
+    let err = Scene::new(&config(500), 1).err().expect("too many agents");
+    assert!(
+        matches!(err, SimError::TooManyAgents { agents: 500, .. }),
+        "{err}"
+    );
+}
+
+#[test]
+fn neighbourhoods_are_symmetric_and_within_the_radius() {
+    let scene = Scene::new(&config(30), 8).unwrap();
+    let (offsets, ids) = scene.neighbours();
+    let positions: HashMap<usize, parry2d::math::Vec2> = scene
+        .vehicles()
+        .filter_map(|v| v.slot.map(|s| (s, v.position)))
+        .collect();
+    let radius = scene.config().neighbour_radius;
+    let mut total = 0;
+    for slot in 0..30 {
+        let mine = &ids[offsets[slot] as usize..offsets[slot + 1] as usize];
+        for &j in mine {
+            let j = j as usize;
+            assert!((positions[&slot] - positions[&j]).length() <= radius);
+            let theirs = &ids[offsets[j] as usize..offsets[j + 1] as usize];
+            assert!(
+                theirs.contains(&(slot as u32)),
+                "{slot} sees {j} but not the reverse"
+            );
+        }
+        let expected = positions
+            .iter()
+            .filter(|&(&k, p)| k != slot && (*p - positions[&slot]).length() <= radius)
+            .count();
+        assert_eq!(mine.len(), expected);
+        total += mine.len();
+    }
+    assert!(total > 0);
+}
