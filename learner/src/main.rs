@@ -11,8 +11,9 @@ use clap::{Args, Parser, Subcommand};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::TcpListenerStream;
 
-use junction_common::config::{DEFAULT_TOML, DeviceChoice, RunConfig};
+use junction_common::config::{DEFAULT_TOML, DeviceChoice, Layer, RunConfig};
 use junction_common::proto::learner_server::LearnerServer;
+use junction_common::scenarios;
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 use junction_learner::algo::Algorithm;
@@ -50,10 +51,31 @@ struct ConfigSource {
     /// defaults (`learner config --defaults`), or the run's config.toml when resuming.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// Scenario to train on: a shipped one (intersection, tiny-straight) or a scenario TOML
+    /// file; replaces the [scenario] keys it sets (applied after --config, before --set).
+    #[arg(long, value_name = "NAME|FILE")]
+    scenario: Option<String>,
     /// Override one config key, e.g. --set ppo.learning_rate=1e-4 (repeatable; applied after
     /// --config, before the dedicated flags below).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     overrides: Vec<String>,
+}
+
+impl ConfigSource {
+    /// Defaults ← `--config` (or `fallback`) ← `--scenario` ← `--set` ← `flags`.
+    fn load(&self, fallback: Option<&Path>, flags: &[String]) -> anyhow::Result<RunConfig> {
+        let scenario = self.scenario.as_deref().map(scenarios::text).transpose()?;
+        let layers: Vec<Layer> = self
+            .config
+            .as_deref()
+            .or(fallback)
+            .map(Layer::File)
+            .into_iter()
+            .chain(scenario.as_deref().map(Layer::Scenario))
+            .chain(self.overrides.iter().chain(flags).map(|o| Layer::Set(o)))
+            .collect();
+        RunConfig::from_layers(&layers).context("loading the configuration")
+    }
 }
 
 #[derive(Args)]
@@ -103,8 +125,7 @@ fn main() -> anyhow::Result<()> {
             if args.defaults {
                 print!("{DEFAULT_TOML}");
             } else {
-                let config =
-                    RunConfig::load(args.source.config.as_deref(), &args.source.overrides)?;
+                let config = args.source.load(None, &[])?;
                 print!("{}", config.to_toml());
             }
             Ok(())
@@ -164,13 +185,9 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     };
 
     let saved_config = run_dir.join("config.toml");
-    let config_file = match (&args.source.config, &resume) {
-        (Some(file), _) => Some(file.clone()),
-        (None, Some(_)) if saved_config.exists() => Some(saved_config.clone()),
-        _ => None,
-    };
-    let mut overrides = args.source.overrides.clone();
-    let flags = [
+    // A resumed run keeps its recorded configuration unless told otherwise.
+    let fallback = (resume.is_some() && saved_config.exists()).then_some(saved_config.as_path());
+    let flags: Vec<String> = [
         ("server.addr", args.addr.as_ref().map(|a| format!("{a:?}"))),
         (
             "server.metrics_addr",
@@ -185,14 +202,11 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             "run.max_seconds",
             args.max_seconds.map(|s| format!("{s:?}")),
         ),
-    ];
-    overrides.extend(
-        flags
-            .into_iter()
-            .filter_map(|(key, value)| value.map(|v| format!("{key}={v}"))),
-    );
-    let config =
-        RunConfig::load(config_file.as_deref(), &overrides).context("loading the configuration")?;
+    ]
+    .into_iter()
+    .filter_map(|(key, value)| value.map(|v| format!("{key}={v}")))
+    .collect();
+    let config = args.source.load(fallback, &flags)?;
 
     std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
     write_atomically(&saved_config, config.to_toml().as_bytes())?;

@@ -13,7 +13,10 @@ use std::time::{Duration, Instant};
 pub fn bin_dir() -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
     // target/<profile>/deps/<test> → target/<profile>
-    exe.parent().and_then(Path::parent).map(Path::to_path_buf).expect("target directory")
+    exe.parent()
+        .and_then(Path::parent)
+        .map(Path::to_path_buf)
+        .expect("target directory")
 }
 
 pub fn bin(name: &str) -> PathBuf {
@@ -67,7 +70,12 @@ impl Process {
         let out = std::fs::File::create(&log).expect("create log file");
         let err = out.try_clone().expect("clone log file");
         let mut command = Command::new(program);
-        command.args(args).stdin(Stdio::null()).stdout(out).stderr(err).env("RUST_LOG", "info");
+        command
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(out)
+            .stderr(err)
+            .env("RUST_LOG", "info");
         // SAFETY: prctl is async-signal-safe; it only asks the kernel to SIGKILL this child
         // when the thread that spawned it (the test) dies.
         unsafe {
@@ -76,8 +84,14 @@ impl Process {
                 Ok(())
             });
         }
-        let child = command.spawn().unwrap_or_else(|e| panic!("starting {}: {e}", program.display()));
-        Process { name: name.to_string(), child, log }
+        let child = command
+            .spawn()
+            .unwrap_or_else(|e| panic!("starting {}: {e}", program.display()));
+        Process {
+            name: name.to_string(),
+            child,
+            log,
+        }
     }
 
     pub fn pid(&self) -> u32 {
@@ -92,7 +106,11 @@ impl Process {
     pub fn log_tail(&self, lines: usize) -> String {
         let log = self.log();
         let all: Vec<&str> = log.lines().collect();
-        format!("--- {} (last {lines} lines) ---\n{}", self.name, all[all.len().saturating_sub(lines)..].join("\n"))
+        format!(
+            "--- {} (last {lines} lines) ---\n{}",
+            self.name,
+            all[all.len().saturating_sub(lines)..].join("\n")
+        )
     }
 
     pub fn try_exit(&mut self) -> Option<ExitStatus> {
@@ -145,22 +163,17 @@ pub struct Endpoints {
     pub metrics: String,
 }
 
-/// Starts `learner serve` on ephemeral loopback ports and waits until it serves.
+/// Starts `learner serve` on ephemeral loopback ports and waits until it serves. `run_dir`
+/// is passed as `--run-dir` unless `extra` resumes a run (`--resume DIR`).
 pub fn start_learner(run_dir: &Path, log_dir: &Path, extra: &[&str]) -> (Process, Endpoints) {
-    let mut args: Vec<String> = [
-        "serve",
-        "--addr",
-        "127.0.0.1:0",
-        "--metrics-addr",
-        "127.0.0.1:0",
-        "--run-dir",
-        &run_dir.display().to_string(),
-        "--device",
-        "cpu",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
+    let mut args: Vec<String> =
+        ["serve", "--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0", "--device", "cpu"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+    if !extra.contains(&"--resume") {
+        args.extend(["--run-dir".to_string(), run_dir.display().to_string()]);
+    }
     args.extend(extra.iter().map(|s| s.to_string()));
     let mut learner = Process::start("learner", &bin("learner"), &args, log_dir);
     let endpoints_file = run_dir.join("endpoints.json");
@@ -177,34 +190,52 @@ pub fn start_learner(run_dir: &Path, log_dir: &Path, extra: &[&str]) -> (Process
             }
         }
         if let Some(status) = learner.try_exit() {
-            panic!("learner exited early with {status}\n{}", learner.log_tail(40));
+            panic!(
+                "learner exited early with {status}\n{}",
+                learner.log_tail(40)
+            );
         }
-        assert!(Instant::now() < deadline, "learner did not start within 60 s\n{}", learner.log_tail(40));
+        assert!(
+            Instant::now() < deadline,
+            "learner did not start within 60 s\n{}",
+            learner.log_tail(40)
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
 }
 
 pub fn start_actor(endpoints: &Endpoints, log_dir: &Path, name: &str, extra: &[&str]) -> Process {
-    let mut args = vec!["--learner".to_string(), format!("http://{}", endpoints.grpc)];
+    let mut args = vec![
+        "--learner".to_string(),
+        format!("http://{}", endpoints.grpc),
+    ];
     args.extend(extra.iter().map(|s| s.to_string()));
     Process::start(name, &bin("actor"), &args, log_dir)
 }
 
 /// A loopback port that was free a moment ago.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("free port").port()
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("free port")
+        .port()
 }
 
 /// GET http://<addr><path> with a bare HTTP/1.1 request; returns the body.
 pub fn http_get(addr: &str, path: &str) -> std::io::Result<String> {
     let mut stream = TcpStream::connect(addr)?;
     stream.set_read_timeout(Some(Duration::from_secs(5)))?;
-    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )?;
     let mut response = String::new();
     stream.read_to_string(&mut response)?;
     let (head, body) = response.split_once("\r\n\r\n").unwrap_or((&response, ""));
     if !head.starts_with("HTTP/1.1 200") {
-        return Err(std::io::Error::other(format!("unexpected response: {head}")));
+        return Err(std::io::Error::other(format!(
+            "unexpected response: {head}"
+        )));
     }
     Ok(body.to_string())
 }
@@ -221,7 +252,9 @@ pub fn parse_metrics(text: &str) -> BTreeMap<String, f64> {
 }
 
 pub fn scrape(addr: &str) -> BTreeMap<String, f64> {
-    http_get(addr, "/metrics").map(|body| parse_metrics(&body)).unwrap_or_default()
+    http_get(addr, "/metrics")
+        .map(|body| parse_metrics(&body))
+        .unwrap_or_default()
 }
 
 /// Polls `condition` every 200 ms until it holds or `timeout` passes.

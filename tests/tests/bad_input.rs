@@ -42,7 +42,10 @@ async fn push(
     client: &mut LearnerClient<tonic::transport::Channel>,
     fragment: proto::RolloutFragment,
 ) -> Result<proto::PushSummary, tonic::Status> {
-    client.push_rollouts(tokio_stream::iter(vec![fragment])).await.map(|r| r.into_inner())
+    client
+        .push_rollouts(tokio_stream::iter(vec![fragment]))
+        .await
+        .map(|r| r.into_inner())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -52,7 +55,9 @@ async fn invalid_fragments_are_refused_with_clear_errors_and_counted() {
     let (mut learner, endpoints) = tokio::task::block_in_place(|| {
         start_learner(&run_dir, dir.path(), &["--max-seconds", "120"])
     });
-    let mut client = LearnerClient::connect(format!("http://{}", endpoints.grpc)).await.expect("connect");
+    let mut client = LearnerClient::connect(format!("http://{}", endpoints.grpc))
+        .await
+        .expect("connect");
 
     let mut wrong_shape = valid_fragment();
     wrong_shape.obs.truncate(100);
@@ -69,39 +74,103 @@ async fn invalid_fragments_are_refused_with_clear_errors_and_counted() {
     let mut broken_invariant = valid_fragment();
     broken_invariant.alive[1] = 0; // the agent vanished without being done
     let cases = [
-        ("wrong shape", wrong_shape, Code::InvalidArgument, "obs has 100 values, expected 182", "shape"),
-        ("NaN reward", nan, Code::InvalidArgument, "non-finite value (NaN or inf) in rewards at index 1", "non_finite"),
-        ("infinite obs", inf, Code::InvalidArgument, "in obs at index 7", "non_finite"),
-        ("unknown version", version, Code::FailedPrecondition, "protocol version 42 is not supported", "version"),
-        ("other obs size", dims, Code::InvalidArgument, "the run expects 91 × 2", "shape"),
-        ("broken invariant", broken_invariant, Code::InvalidArgument, "slot 0 is alive and not done at step 0", "invariant"),
+        (
+            "wrong shape",
+            wrong_shape,
+            Code::InvalidArgument,
+            "obs has 100 values, expected 182",
+            "shape",
+        ),
+        (
+            "NaN reward",
+            nan,
+            Code::InvalidArgument,
+            "non-finite value (NaN or inf) in rewards at index 1",
+            "non_finite",
+        ),
+        (
+            "infinite obs",
+            inf,
+            Code::InvalidArgument,
+            "in obs at index 7",
+            "non_finite",
+        ),
+        (
+            "unknown version",
+            version,
+            Code::FailedPrecondition,
+            "protocol version 42 is not supported",
+            "version",
+        ),
+        (
+            "other obs size",
+            dims,
+            Code::InvalidArgument,
+            "the run expects 91 × 2",
+            "shape",
+        ),
+        (
+            "broken invariant",
+            broken_invariant,
+            Code::InvalidArgument,
+            "slot 0 is alive and not done at step 0",
+            "invariant",
+        ),
     ];
     for (what, fragment, code, message, _) in &cases {
         let status = push(&mut client, fragment.clone()).await.expect_err(what);
         assert_eq!(status.code(), *code, "{what}: {status:?}");
-        assert!(status.message().contains(message), "{what}: message {:?} lacks {message:?}", status.message());
+        assert!(
+            status.message().contains(message),
+            "{what}: message {:?} lacks {message:?}",
+            status.message()
+        );
     }
     // Flag bytes other than 0 and 1.
     let mut flags = valid_fragment();
     flags.dones = vec![7, 0];
     let status = push(&mut client, flags).await.expect_err("bad flag bytes");
-    assert!(status.message().contains("invalid flag byte 7 in dones at index 0"), "{status:?}");
+    assert!(
+        status
+            .message()
+            .contains("invalid flag byte 7 in dones at index 0"),
+        "{status:?}"
+    );
 
     // The learner still serves: a valid fragment is accepted and Status answers.
-    let summary = push(&mut client, valid_fragment()).await.expect("valid fragment accepted");
-    assert_eq!((summary.accepted_fragments, summary.accepted_agent_steps), (1, 2));
-    client.status(proto::StatusRequest {}).await.expect("status after bad input");
-    assert!(learner.try_exit().is_none(), "learner died:\n{}", learner.log_tail(30));
+    let summary = push(&mut client, valid_fragment())
+        .await
+        .expect("valid fragment accepted");
+    assert_eq!(
+        (summary.accepted_fragments, summary.accepted_agent_steps),
+        (1, 2)
+    );
+    client
+        .status(proto::StatusRequest {})
+        .await
+        .expect("status after bad input");
+    assert!(
+        learner.try_exit().is_none(),
+        "learner died:\n{}",
+        learner.log_tail(30)
+    );
 
     let m = tokio::task::block_in_place(|| scrape(&endpoints.metrics));
     let rejected = |reason: &str| {
-        m.get(&format!("junction_learner_fragments_rejected_total{{reason=\"{reason}\"}}")).copied().unwrap_or(0.0)
+        m.get(&format!(
+            "junction_learner_fragments_rejected_total{{reason=\"{reason}\"}}"
+        ))
+        .copied()
+        .unwrap_or(0.0)
     };
     assert_eq!(rejected("shape"), 2.0, "{m:?}");
     assert_eq!(rejected("non_finite"), 2.0);
     assert_eq!(rejected("version"), 1.0);
     assert_eq!(rejected("invariant"), 2.0);
     assert_eq!(metric_sum(&m, "junction_learner_fragments_total"), 1.0);
-    assert!(learner.log().contains("rejected fragment"), "rejections are logged");
+    assert!(
+        learner.log().contains("rejected fragment"),
+        "rejections are logged"
+    );
     tokio::task::block_in_place(|| learner.stop(Duration::from_secs(30)));
 }

@@ -3,7 +3,9 @@
 
 use std::time::Duration;
 
-use junction_tests::{TempDir, free_port, metric_sum, scrape, start_actor, start_learner, wait_until};
+use junction_tests::{
+    TempDir, free_port, metric_sum, scrape, start_actor, start_learner, wait_until,
+};
 
 #[test]
 fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
@@ -28,13 +30,24 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
         ],
     );
     let actor_metrics = format!("127.0.0.1:{}", free_port());
-    let mut actor = start_actor(&endpoints, dir.path(), "actor", &["--scenes", "2", "--metrics-addr", &actor_metrics]);
+    let mut actor = start_actor(
+        &endpoints,
+        dir.path(),
+        "actor",
+        &["--scenes", "2", "--metrics-addr", &actor_metrics],
+    );
 
     let published = wait_until(Duration::from_secs(180), || {
         let m = scrape(&endpoints.metrics);
-        metric_sum(&m, "junction_learner_policy_version") >= 3.0 && metric_sum(&m, "junction_learner_fragments_total") > 0.0
+        metric_sum(&m, "junction_learner_policy_version") >= 3.0
+            && metric_sum(&m, "junction_learner_fragments_total") > 0.0
     });
-    assert!(published, "no 3 policy versions within 180 s\n{}\n{}", learner.log_tail(30), actor.log_tail(30));
+    assert!(
+        published,
+        "no 3 policy versions within 180 s\n{}\n{}",
+        learner.log_tail(30),
+        actor.log_tail(30)
+    );
 
     let m = scrape(&endpoints.metrics);
     for counter in [
@@ -43,18 +56,35 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
         "junction_learner_samples_trained_total",
         "junction_learner_transport_received_bytes_total",
     ] {
-        assert!(metric_sum(&m, counter) > 0.0, "{counter} did not move: {m:?}");
+        assert!(
+            metric_sum(&m, counter) > 0.0,
+            "{counter} did not move: {m:?}"
+        );
     }
     assert!(metric_sum(&m, "junction_learner_updates_total") >= 3.0);
-    assert!(metric_sum(&m, "junction_learner_fragments_rejected_total") == 0.0, "valid fragments were rejected");
+    assert!(
+        metric_sum(&m, "junction_learner_fragments_rejected_total") == 0.0,
+        "valid fragments were rejected"
+    );
 
     // The actor really runs newer weights than the initial version 0.
     let switched = wait_until(Duration::from_secs(60), || {
         let a = scrape(&actor_metrics);
-        metric_sum(&a, "junction_actor_policy_version") >= 1.0 && metric_sum(&a, "junction_actor_policy_switches_total") >= 1.0
+        metric_sum(&a, "junction_actor_policy_version") >= 1.0
+            && metric_sum(&a, "junction_actor_policy_switches_total") >= 1.0
     });
-    assert!(switched, "actor never switched policy: {:?}\n{}", scrape(&actor_metrics), actor.log_tail(30));
-    assert!(metric_sum(&scrape(&actor_metrics), "junction_actor_fragments_sent_total") > 0.0);
+    assert!(
+        switched,
+        "actor never switched policy: {:?}\n{}",
+        scrape(&actor_metrics),
+        actor.log_tail(30)
+    );
+    assert!(
+        metric_sum(
+            &scrape(&actor_metrics),
+            "junction_actor_fragments_sent_total"
+        ) > 0.0
+    );
 
     // SIGTERM: the learner checkpoints, tells the actor the run is over, and both exit 0.
     learner.signal(libc::SIGTERM);
@@ -77,5 +107,8 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
         .collect();
     assert!(!checkpoints.is_empty(), "no checkpoint written");
     let progress = std::fs::read_to_string(run_dir.join("progress.jsonl")).expect("progress log");
-    assert!(progress.lines().count() >= 2, "progress log too short: {progress}");
+    assert!(
+        progress.lines().count() >= 2,
+        "progress log too short: {progress}"
+    );
 }

@@ -99,6 +99,10 @@ pub struct Scene {
     bodies: Vec<(Vec2, f32, Option<usize>)>,
     crashed: Vec<bool>,
     lidar: Vec<f32>,
+    progress_gain: Vec<f32>,
+    accel: Vec<f32>,
+    near: Vec<usize>,
+    nearby_agents: Vec<u32>,
 }
 
 impl Scene {
@@ -153,6 +157,10 @@ impl Scene {
             bodies: Vec::new(),
             crashed: vec![false; slots],
             lidar: vec![0.0; config.sensors.lidar_beams],
+            progress_gain: vec![0.0; slots],
+            accel: vec![0.0; slots],
+            near: Vec::new(),
+            nearby_agents: Vec::new(),
         };
         scene.reset();
         Ok(scene)
@@ -222,8 +230,7 @@ impl Scene {
         let dt = self.config.decision_dt;
 
         // Move every agent and follow its route.
-        let mut progress_gain = vec![0.0f32; slots];
-        let mut accel = vec![0.0f32; slots];
+        let (progress_gain, accel) = (&mut self.progress_gain, &mut self.accel);
         for (slot, car) in self.cars.iter_mut().enumerate() {
             let Some(car) = car else { continue };
             let action = [
@@ -276,7 +283,7 @@ impl Scene {
                 Some(Outcome::Crash) => reward.crash,
                 Some(Outcome::OutOfRoad) => reward.out_of_road,
                 Some(Outcome::Timeout) | None => {
-                    reward.displacement * progress_gain[slot]
+                    reward.displacement * self.progress_gain[slot]
                         + reward.speed * car.kin.speed / MAX_SPEED
                 }
             };
@@ -286,8 +293,9 @@ impl Scene {
                 car.collisions += 1;
             }
             car.total_reward += r;
-            car.abs_accel_sum += accel[slot].abs();
-            car.max_abs_accel = car.max_abs_accel.max(accel[slot].abs());
+            let accel = self.accel[slot].abs();
+            car.abs_accel_sum += accel;
+            car.max_abs_accel = car.max_abs_accel.max(accel);
             if let Some(outcome) = outcome {
                 self.result.dones[slot] = true;
                 self.result.finished.push(FinishedEpisode {
@@ -455,7 +463,6 @@ impl Scene {
         let radius = self.config.neighbour_radius;
         self.neighbour_ids.clear();
         self.neighbour_offsets[0] = 0;
-        let mut neighbours = Vec::new();
         for slot in 0..self.slots() {
             let row = &mut self.observations[slot * obs_dim..(slot + 1) * obs_dim];
             let Some(car) = self.cars[slot].as_ref() else {
@@ -473,7 +480,8 @@ impl Scene {
             };
             observation::write_state(row, &car.kin, &at, self.network.lanes());
             let (p, bodies, grid) = (car.kin.position, &self.bodies, &self.grid);
-            let mut near = Vec::new();
+            let (near, neighbours) = (&mut self.near, &mut self.nearby_agents);
+            near.clear();
             grid.for_each_near(p, range + BOUNDING_RADIUS, |j| {
                 if bodies[j].2 != Some(slot) {
                     near.push(j);
@@ -497,7 +505,7 @@ impl Scene {
                 }
             });
             neighbours.sort_unstable();
-            self.neighbour_ids.extend_from_slice(&neighbours);
+            self.neighbour_ids.extend_from_slice(neighbours);
             self.neighbour_offsets[slot + 1] = self.neighbour_ids.len() as u32;
         }
     }

@@ -1,0 +1,100 @@
+//! A learning test that can fail: on the tiny straight-through scenario, PPO must take the
+//! success rate from about 0 (random policy) to at least 0.9, with fixed seeds, within a bounded
+//! number of updates and time.
+
+use std::time::{Duration, Instant};
+
+use junction_tests::{TempDir, start_actor, start_learner};
+
+/// Hard limits of the test; the closing figures go to stdout.
+const MAX_WALL: Duration = Duration::from_secs(170);
+const MAX_UPDATES: u64 = 400;
+const WINDOW: usize = 50;
+
+fn progress_lines(path: &std::path::Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect()
+}
+
+#[test]
+fn ppo_learns_to_cross_the_tiny_intersection() {
+    let dir = TempDir::new("learning");
+    let run_dir = dir.path().join("run");
+    let window = WINDOW.to_string();
+    let (mut learner, endpoints) = start_learner(
+        &run_dir,
+        dir.path(),
+        &[
+            "--scenario",
+            "tiny-straight",
+            "--seed",
+            "1",
+            "--max-seconds",
+            "200",
+            "--set",
+            "run.progress_interval_s=1",
+            "--set",
+            &format!("run.stats_window_episodes={window}"),
+            "--set",
+            "run.checkpoint_every_updates=0",
+        ],
+    );
+    let actor = start_actor(
+        &endpoints,
+        dir.path(),
+        "actor",
+        &["--scenes", "8", "--seed", "1"],
+    );
+    let started = Instant::now();
+    let progress_file = run_dir.join("progress.jsonl");
+    let mut first_full_window: Option<f64> = None;
+    let learned = loop {
+        let lines = progress_lines(&progress_file);
+        let full: Vec<&serde_json::Value> = lines
+            .iter()
+            .filter(|l| l["window"]["episodes"].as_u64().unwrap_or(0) >= WINDOW as u64)
+            .collect();
+        if first_full_window.is_none() {
+            first_full_window = full
+                .first()
+                .and_then(|l| l["window"]["success_rate"].as_f64());
+        }
+        if let Some(hit) = full
+            .iter()
+            .find(|l| l["window"]["success_rate"].as_f64().unwrap_or(0.0) >= 0.9)
+        {
+            break Some((**hit).clone());
+        }
+        let updates = lines
+            .last()
+            .and_then(|l| l["updates"].as_u64())
+            .unwrap_or(0);
+        if started.elapsed() > MAX_WALL || updates > MAX_UPDATES || learner.try_exit().is_some() {
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    let Some(hit) = learned else {
+        let last = progress_lines(&progress_file).pop();
+        panic!(
+            "success rate never reached 0.9 (last progress: {last:?})\n{}\n{}",
+            learner.log_tail(20),
+            actor.log_tail(20)
+        );
+    };
+    println!(
+        "learning: success {:.3} after {} updates, {} agent-steps, {:.0} s (first full window: {first_full_window:?})",
+        hit["window"]["success_rate"].as_f64().unwrap_or(0.0),
+        hit["updates"],
+        hit["agent_steps"],
+        hit["elapsed_s"].as_f64().unwrap_or(0.0),
+    );
+    let start = first_full_window.expect("a full window of episodes before success");
+    assert!(
+        start <= 0.2,
+        "the untrained policy already succeeds ({start}); the test would prove nothing"
+    );
+}
