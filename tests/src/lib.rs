@@ -166,11 +166,18 @@ pub struct Endpoints {
 /// Starts `learner serve` on ephemeral loopback ports and waits until it serves. `run_dir`
 /// is passed as `--run-dir` unless `extra` resumes a run (`--resume DIR`).
 pub fn start_learner(run_dir: &Path, log_dir: &Path, extra: &[&str]) -> (Process, Endpoints) {
-    let mut args: Vec<String> =
-        ["serve", "--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0", "--device", "cpu"]
-            .iter()
-            .map(|s| s.to_string())
-            .collect();
+    let mut args: Vec<String> = [
+        "serve",
+        "--addr",
+        "127.0.0.1:0",
+        "--metrics-addr",
+        "127.0.0.1:0",
+        "--device",
+        "cpu",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
     if !extra.contains(&"--resume") {
         args.extend(["--run-dir".to_string(), run_dir.display().to_string()]);
     }
