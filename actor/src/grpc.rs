@@ -235,6 +235,8 @@ fn rollout_loop(
                 tracing::debug!(version = latest.version, "switched policy");
             }
         }
+        let _collect =
+            tracing::info_span!("collect", policy_version = worker.policy_version()).entered();
         let (fragments, timings) = worker.collect().context("policy inference")?;
         metrics.inference_seconds.inc_by(timings.inference_s);
         metrics.simulation_seconds.inc_by(timings.simulation_s);

@@ -108,6 +108,9 @@ pub enum FragmentError {
 }
 
 impl FragmentError {
+    /// Every value `reason()` returns.
+    pub const REASONS: [&'static str; 4] = ["version", "shape", "non_finite", "invariant"];
+
     pub fn reason(&self) -> &'static str {
         match self {
             FragmentError::Version { .. } => "version",
@@ -518,6 +521,30 @@ pub(crate) mod tests {
             RolloutFragment::from_proto(p, None).unwrap_err().reason(),
             "shape"
         );
+    }
+
+    #[test]
+    fn every_rejection_reason_is_listed_for_metrics() {
+        let errors = [
+            FragmentError::Version {
+                got: 2,
+                expected: 1,
+            },
+            FragmentError::Shape(String::new()),
+            FragmentError::NonFinite {
+                field: "obs",
+                index: 0,
+            },
+            FragmentError::Flag {
+                field: "dones",
+                index: 0,
+                value: 7,
+            },
+            FragmentError::Invariant(String::new()),
+        ];
+        let mut reasons: Vec<&str> = errors.iter().map(FragmentError::reason).collect();
+        reasons.dedup();
+        assert_eq!(reasons, FragmentError::REASONS);
     }
 
     #[test]

@@ -29,6 +29,16 @@ pub mod names {
     pub const LEARNER_OUT_OF_ROAD_RATE: &str = "junction_learner_out_of_road_rate";
     pub const LEARNER_EPISODE_REWARD_MEAN: &str = "junction_learner_episode_reward_mean";
     pub const LEARNER_EPISODE_LENGTH_MEAN: &str = "junction_learner_episode_length_mean";
+    pub const LEARNER_EPISODE_REWARD_MAX: &str = "junction_learner_episode_reward_max";
+    pub const LEARNER_EPISODE_LENGTH_MAX: &str = "junction_learner_episode_length_max";
+    pub const LEARNER_ACCEL_MEAN: &str = "junction_learner_episode_accel_mean_meters_per_second2";
+    pub const LEARNER_ACCEL_MAX: &str = "junction_learner_episode_accel_max_meters_per_second2";
+    pub const LEARNER_COLLISIONS: &str = "junction_learner_collisions_total";
+    pub const LEARNER_SIMULATED_SECONDS: &str = "junction_learner_simulated_seconds_total";
+    pub const LEARNER_POLICY_LAG: &str = "junction_learner_policy_lag_versions";
+    pub const LEARNER_LEARNING_RATE: &str = "junction_learner_learning_rate";
+    pub const LEARNER_NONFINITE_MINIBATCHES: &str =
+        "junction_learner_nonfinite_loss_minibatches_total";
     pub const LEARNER_POLICY_LOSS: &str = "junction_learner_policy_loss";
     pub const LEARNER_VALUE_LOSS: &str = "junction_learner_value_loss";
     pub const LEARNER_ENTROPY: &str = "junction_learner_entropy";
@@ -69,8 +79,11 @@ impl std::str::FromStr for LogFormat {
 pub fn init_logging(format: LogFormat) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    // Colours only on a terminal: logs redirected to files stay plain text.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(ansi)
         .with_writer(std::io::stderr);
     // A second init (e.g. in tests) keeps the first subscriber.
     let _ = match format {

@@ -1,13 +1,23 @@
 //! The learner's Prometheus metrics (names in `junction_common::telemetry::names`).
 
 use prometheus::{
-    Gauge, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, Opts, Registry,
+    CounterVec, Gauge, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge,
+    Opts, Registry,
 };
 
 use junction_common::telemetry::names;
 
+use junction_common::fragment::{EpisodeStats, FragmentError, Outcome};
+
 use crate::algo::UpdateStats;
 use crate::stats::WindowSummary;
+
+/// `reason` of fragments refused before validation: undecodable bytes, or another scenario.
+pub const REJECT_DECODE: &str = "decode";
+pub const REJECT_SCENARIO: &str = "scenario";
+/// `reason` of accepted fragments not trained on: older than `max_policy_lag` versions.
+pub const DROP_STALE: &str = "stale";
+pub const TRANSPORT_GRPC: &str = "grpc";
 
 pub struct LearnerMetrics {
     pub registry: Registry,
@@ -24,11 +34,20 @@ pub struct LearnerMetrics {
     pub queue_fragments: IntGauge,
     pub transport_bytes: IntCounterVec,
     pub episodes: IntCounterVec,
+    pub policy_lag: Histogram,
+    collisions: IntCounterVec,
+    simulated_seconds: CounterVec,
     success_rate: GaugeVec,
     crash_rate: GaugeVec,
     out_of_road_rate: GaugeVec,
     episode_reward_mean: GaugeVec,
     episode_length_mean: GaugeVec,
+    episode_reward_max: GaugeVec,
+    episode_length_max: GaugeVec,
+    accel_mean: GaugeVec,
+    accel_max: GaugeVec,
+    learning_rate: Gauge,
+    nonfinite_minibatches: IntCounter,
     policy_loss: Gauge,
     value_loss: Gauge,
     entropy: Gauge,
@@ -75,6 +94,22 @@ impl LearnerMetrics {
             .buckets(vec![0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0]),
         )?;
         registry.register(Box::new(update_seconds.clone()))?;
+        let policy_lag = Histogram::with_opts(
+            HistogramOpts::new(
+                names::LEARNER_POLICY_LAG,
+                "Policy versions between a fragment's behaviour policy and the learner's newest, per received fragment.",
+            )
+            .buckets(vec![0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0]),
+        )?;
+        registry.register(Box::new(policy_lag.clone()))?;
+        let simulated_seconds = CounterVec::new(
+            Opts::new(
+                names::LEARNER_SIMULATED_SECONDS,
+                "Simulated seconds of scene time consumed, by scenario.",
+            ),
+            &["scenario"],
+        )?;
+        registry.register(Box::new(simulated_seconds.clone()))?;
         Ok(LearnerMetrics {
             policy_version: int_gauge(
                 names::LEARNER_POLICY_VERSION,
@@ -146,6 +181,37 @@ impl LearnerMetrics {
                 names::LEARNER_EPISODE_LENGTH_MEAN,
                 "Mean length of recent episodes, in decision steps.",
             )?,
+            episode_reward_max: scenario_gauge(
+                names::LEARNER_EPISODE_REWARD_MAX,
+                "Largest total reward among recent episodes.",
+            )?,
+            episode_length_max: scenario_gauge(
+                names::LEARNER_EPISODE_LENGTH_MAX,
+                "Longest of recent episodes, in decision steps.",
+            )?,
+            accel_mean: scenario_gauge(
+                names::LEARNER_ACCEL_MEAN,
+                "Mean over recent episodes of each episode's mean |longitudinal acceleration|.",
+            )?,
+            accel_max: scenario_gauge(
+                names::LEARNER_ACCEL_MAX,
+                "Mean over recent episodes of each episode's largest |longitudinal acceleration| (paper: mean acceleration, maximum value).",
+            )?,
+            collisions: counter_vec(
+                names::LEARNER_COLLISIONS,
+                "Collisions of finished episodes, by scenario; divide its rate by the rate of simulated seconds for collisions per simulated second.",
+                &["scenario"],
+            )?,
+            simulated_seconds,
+            policy_lag,
+            learning_rate: gauge(
+                names::LEARNER_LEARNING_RATE,
+                "Optimiser step size of the last update.",
+            )?,
+            nonfinite_minibatches: counter(
+                names::LEARNER_NONFINITE_MINIBATCHES,
+                "Minibatches skipped because their loss was NaN or infinite.",
+            )?,
             policy_loss: gauge(names::LEARNER_POLICY_LOSS, "PPO clipped surrogate loss.")?,
             value_loss: gauge(names::LEARNER_VALUE_LOSS, "Value-function loss.")?,
             entropy: gauge(names::LEARNER_ENTROPY, "Policy entropy (nats).")?,
@@ -166,8 +232,46 @@ impl LearnerMetrics {
         })
     }
 
+    /// Creates every bounded label value at zero, so dashboards and alerts see each series
+    /// before its first event.
+    pub fn initialise_labels(&self, scenario: &str) {
+        for reason in FragmentError::REASONS
+            .iter()
+            .chain(&[REJECT_DECODE, REJECT_SCENARIO])
+        {
+            self.fragments_rejected.with_label_values(&[reason]);
+        }
+        self.fragments_dropped.with_label_values(&[DROP_STALE]);
+        self.transport_bytes.with_label_values(&[TRANSPORT_GRPC]);
+        for outcome in Outcome::ALL {
+            self.episodes
+                .with_label_values(&[scenario, outcome.label()]);
+        }
+        self.collisions.with_label_values(&[scenario]);
+        self.simulated_seconds.with_label_values(&[scenario]);
+    }
+
+    /// Counts what one received fragment simulated: its episodes, collisions and scene time.
+    pub fn record_fragment(&self, scenario: &str, episodes: &[EpisodeStats], sim_seconds: f32) {
+        for episode in episodes {
+            self.episodes
+                .with_label_values(&[scenario, episode.outcome.label()])
+                .inc();
+        }
+        let collisions: u64 = episodes.iter().map(|e| u64::from(e.collisions)).sum();
+        self.collisions
+            .with_label_values(&[scenario])
+            .inc_by(collisions);
+        self.simulated_seconds
+            .with_label_values(&[scenario])
+            .inc_by(f64::from(sim_seconds));
+    }
+
     pub fn record_update(&self, stats: &UpdateStats, seconds: f64) {
         self.updates.inc();
+        self.learning_rate.set(stats.learning_rate);
+        self.nonfinite_minibatches
+            .inc_by(stats.skipped_minibatches as u64);
         self.update_seconds.observe(seconds);
         self.samples_trained.inc_by(stats.samples_trained as u64);
         self.policy_loss.set(stats.policy_loss);
@@ -195,5 +299,17 @@ impl LearnerMetrics {
         self.episode_length_mean
             .with_label_values(&[scenario])
             .set(summary.mean_length);
+        self.episode_reward_max
+            .with_label_values(&[scenario])
+            .set(summary.max_reward);
+        self.episode_length_max
+            .with_label_values(&[scenario])
+            .set(f64::from(summary.max_length));
+        self.accel_mean
+            .with_label_values(&[scenario])
+            .set(summary.mean_accel);
+        self.accel_max
+            .with_label_values(&[scenario])
+            .set(summary.mean_max_accel);
     }
 }

@@ -15,7 +15,7 @@ use junction_common::fragment::{FragmentError, PROTOCOL_VERSION, RolloutFragment
 use junction_common::proto::{self, learner_server::Learner};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
-use crate::metrics::LearnerMetrics;
+use crate::metrics::{LearnerMetrics, REJECT_DECODE, REJECT_SCENARIO, TRANSPORT_GRPC};
 
 /// State the gRPC handlers share with the training loop.
 pub struct Shared {
@@ -32,6 +32,7 @@ pub struct Shared {
 impl Shared {
     pub fn new(config: RunConfig, metrics: LearnerMetrics, initial: proto::PolicyWeights) -> Self {
         let (weights, _) = watch::channel(Arc::new(initial));
+        metrics.initialise_labels(&config.scenario.name);
         Shared {
             config,
             metrics,
@@ -153,7 +154,7 @@ impl Learner for LearnerService {
                     // going away mid-stream, which is not the data's fault.
                     if status.code() == tonic::Code::Internal && status.message().contains("decode")
                     {
-                        shared.reject("decode", "?", status.message());
+                        shared.reject(REJECT_DECODE, "?", status.message());
                     } else {
                         tracing::debug!(error = %status, "rollout stream ended with an error");
                     }
@@ -163,7 +164,7 @@ impl Learner for LearnerService {
             shared
                 .metrics
                 .transport_bytes
-                .with_label_values(&["grpc"])
+                .with_label_values(&[TRANSPORT_GRPC])
                 .inc_by(message.encoded_len() as u64);
             let actor = message.actor_id.clone();
             let fragment = match RolloutFragment::from_proto(message, dims) {
@@ -172,7 +173,7 @@ impl Learner for LearnerService {
                         "fragment is from scenario {:?}, this run trains {:?}",
                         f.scenario, shared.config.scenario.name
                     );
-                    shared.reject("scenario", &actor, &detail);
+                    shared.reject(REJECT_SCENARIO, &actor, &detail);
                     return Err(Status::invalid_argument(format!(
                         "fragment rejected: {detail}"
                     )));

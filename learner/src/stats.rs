@@ -21,6 +21,10 @@ pub struct WindowSummary {
     pub max_reward: f64,
     pub mean_length: f64,
     pub max_length: u32,
+    /// Mean of the episodes' mean |longitudinal acceleration|, m/s².
+    pub mean_accel: f64,
+    /// Mean of the episodes' largest |longitudinal acceleration|, m/s² (paper §4.2).
+    pub mean_max_accel: f64,
 }
 
 impl EpisodeWindow {
@@ -50,17 +54,29 @@ impl EpisodeWindow {
                 .count() as f64
                 / n as f64
         };
-        let rewards = self.episodes.iter().map(|e| e.total_reward as f64);
+        let mean = |field: fn(&EpisodeStats) -> f32| {
+            self.episodes
+                .iter()
+                .map(|e| f64::from(field(e)))
+                .sum::<f64>()
+                / n as f64
+        };
         WindowSummary {
             episodes: n,
             success_rate: share(Outcome::Success),
             crash_rate: share(Outcome::Crash),
             out_of_road_rate: share(Outcome::OutOfRoad),
             timeout_rate: share(Outcome::Timeout),
-            mean_reward: rewards.clone().sum::<f64>() / n as f64,
-            max_reward: rewards.fold(f64::NEG_INFINITY, f64::max),
-            mean_length: self.episodes.iter().map(|e| e.length as f64).sum::<f64>() / n as f64,
+            mean_reward: mean(|e| e.total_reward),
+            max_reward: self
+                .episodes
+                .iter()
+                .map(|e| f64::from(e.total_reward))
+                .fold(f64::NEG_INFINITY, f64::max),
+            mean_length: mean(|e| e.length as f32),
             max_length: self.episodes.iter().map(|e| e.length).max().unwrap_or(0),
+            mean_accel: mean(|e| e.mean_abs_accel),
+            mean_max_accel: mean(|e| e.max_abs_accel),
         }
     }
 }
@@ -74,8 +90,8 @@ mod tests {
             outcome,
             length,
             total_reward: reward,
-            mean_abs_accel: 0.0,
-            max_abs_accel: 0.0,
+            mean_abs_accel: length as f32 / 100.0,
+            max_abs_accel: length as f32 / 10.0,
             collisions: 0,
         }
     }
@@ -101,6 +117,12 @@ mod tests {
         );
         assert_eq!((s.mean_reward, s.max_reward), (7.0, 20.0));
         assert_eq!((s.mean_length, s.max_length), (40.0, 70));
+        assert!((s.mean_accel - 0.4).abs() < 1e-6, "{}", s.mean_accel);
+        assert!(
+            (s.mean_max_accel - 4.0).abs() < 1e-6,
+            "{}",
+            s.mean_max_accel
+        );
         assert_eq!(EpisodeWindow::new(3).summary(), WindowSummary::default());
     }
 }

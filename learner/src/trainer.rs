@@ -19,6 +19,7 @@ use junction_common::weights;
 
 use crate::algo::{Algorithm, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
+use crate::metrics::DROP_STALE;
 use crate::server::Shared;
 use crate::stats::EpisodeWindow;
 
@@ -130,24 +131,22 @@ impl Trainer {
                     reporter.episodes += fragment.episodes.len() as u64;
                     for episode in &fragment.episodes {
                         window.push(*episode);
-                        self.shared
-                            .metrics
-                            .episodes
-                            .with_label_values(&[
-                                config.scenario.name.as_str(),
-                                episode.outcome.label(),
-                            ])
-                            .inc();
                     }
+                    let metrics = &self.shared.metrics;
+                    metrics.record_fragment(
+                        &config.scenario.name,
+                        &fragment.episodes,
+                        fragment.sim_seconds,
+                    );
                     let lag = self
                         .progress
                         .version
                         .saturating_sub(fragment.behaviour_version);
+                    metrics.policy_lag.observe(lag as f64);
                     if lag > config.learner.max_policy_lag {
-                        self.shared
-                            .metrics
+                        metrics
                             .fragments_dropped
-                            .with_label_values(&["stale"])
+                            .with_label_values(&[DROP_STALE])
                             .inc();
                         tracing::debug!(lag, actor = %fragment.actor_id, "dropped stale fragment");
                     } else {

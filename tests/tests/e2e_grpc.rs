@@ -86,6 +86,13 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
         ) > 0.0
     );
 
+    // Progress is reported every second (run.progress_interval_s) while training goes on.
+    let progress_file = run_dir.join("progress.jsonl");
+    let reported = wait_until(Duration::from_secs(30), || {
+        std::fs::read_to_string(&progress_file).is_ok_and(|p| p.lines().count() >= 2)
+    });
+    assert!(reported, "fewer than 2 progress reports in 30 s");
+
     // SIGTERM: the learner checkpoints, tells the actor the run is over, and both exit 0.
     learner.signal(libc::SIGTERM);
     let learner_status = learner.wait_exit(Duration::from_secs(60));
@@ -106,9 +113,11 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
         .filter(|e| e.path().join("meta.json").exists())
         .collect();
     assert!(!checkpoints.is_empty(), "no checkpoint written");
-    let progress = std::fs::read_to_string(run_dir.join("progress.jsonl")).expect("progress log");
+    let progress = std::fs::read_to_string(&progress_file).expect("progress log");
+    let last: serde_json::Value =
+        serde_json::from_str(progress.lines().last().unwrap_or("")).expect("JSON progress line");
     assert!(
-        progress.lines().count() >= 2,
-        "progress log too short: {progress}"
+        last["version"].as_u64() >= Some(3),
+        "the final report lacks the trained versions: {last}"
     );
 }

@@ -114,6 +114,7 @@ impl Algorithm for Ippo {
         let mut stats = UpdateStats {
             agent_steps: batch.len,
             explained_variance: explained_variance(&batch.old_values, &batch.returns),
+            learning_rate: self.adam.learning_rate(),
             ..UpdateStats::default()
         };
         let mut minibatches = 0usize;

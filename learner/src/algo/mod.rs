@@ -24,6 +24,8 @@ pub struct UpdateStats {
     pub clip_fraction: f64,
     pub explained_variance: f64,
     pub grad_norm: f64,
+    /// The optimiser's step size during this update.
+    pub learning_rate: f64,
     /// Minibatches skipped because their loss was NaN or infinite.
     pub skipped_minibatches: usize,
 }
