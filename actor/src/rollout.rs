@@ -9,6 +9,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::RolloutFragment;
+use junction_common::lcf;
 use junction_common::policy::GaussianPolicy;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::WeightsError;
@@ -45,6 +46,7 @@ impl FragmentBuilder {
             dones: Vec::with_capacity(cells),
             alive: Vec::with_capacity(cells),
             neighbour_offsets: vec![0],
+            lcf_features: Vec::with_capacity(cells * lcf::FEATURES),
             ..RolloutFragment::default()
         };
         FragmentBuilder { fragment }
@@ -136,6 +138,7 @@ impl RolloutWorker {
                 f.neighbour_offsets
                     .extend(offsets[1..].iter().map(|o| base + o));
                 f.neighbour_ids.extend_from_slice(ids);
+                f.lcf_features.extend_from_slice(scene.lcf_features());
                 let result = scene.step(&self.scene_actions[k]);
                 f.rewards.extend_from_slice(&result.rewards);
                 f.costs.extend_from_slice(&result.costs);

@@ -130,17 +130,33 @@ pub struct SensorConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RewardConfig {
+    pub kind: RewardKind,
     pub displacement: f32,
     pub speed: f32,
+    pub lateral: f32,
+    pub heading: f32,
+    pub steering: f32,
+    pub collision: f32,
     pub success: f32,
     pub crash: f32,
     pub out_of_road: f32,
+}
+
+/// The paper's two reward functions (§3.4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RewardKind {
+    /// Progress and speed; the terminal reward replaces the last step's (as in MetaDrive).
+    I,
+    /// Progress, lane keeping, heading, smooth steering and a collision penalty, all summed
+    /// with the terminal reward.
+    II,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CostConfig {
     pub collision: f32,
+    pub energy: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -351,8 +367,20 @@ impl ScenarioConfig {
             problems.push("scenario.sensors needs lidar_beams > 0 and lidar_range > 0".into());
         }
         let r = &self.reward;
-        let numbers = [r.displacement, r.speed, r.success, r.crash, r.out_of_road];
-        if numbers.iter().any(|v| !v.is_finite()) || !self.cost.collision.is_finite() {
+        let numbers = [
+            r.displacement,
+            r.speed,
+            r.lateral,
+            r.heading,
+            r.steering,
+            r.collision,
+            r.success,
+            r.crash,
+            r.out_of_road,
+            self.cost.collision,
+            self.cost.energy,
+        ];
+        if numbers.iter().any(|v| !v.is_finite()) {
             problems.push("scenario.reward and scenario.cost values must be finite".into());
         }
         join_problems(problems)

@@ -9,7 +9,7 @@
 //! Everything that crosses a process boundary is checked by [`RolloutFragment::validate`]
 //! before use: shapes, finiteness, flags and the slot invariants above.
 
-use crate::proto;
+use crate::{lcf, proto};
 
 /// Wire protocol version; every message carries it and peers refuse others.
 pub const PROTOCOL_VERSION: u32 = 1;
@@ -62,6 +62,7 @@ pub struct EpisodeStats {
     pub mean_abs_accel: f32,
     pub max_abs_accel: f32,
     pub collisions: u32,
+    pub energy_kj: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -84,6 +85,8 @@ pub struct RolloutFragment {
     pub bootstrap_obs: Vec<f32>,
     pub neighbour_offsets: Vec<u32>,
     pub neighbour_ids: Vec<u32>,
+    /// S_N per (step, slot), `lcf::FEATURES` each.
+    pub lcf_features: Vec<f32>,
     pub episodes: Vec<EpisodeStats>,
     pub sim_seconds: f32,
 }
@@ -178,7 +181,7 @@ impl RolloutFragment {
         }
         // Bounded by the MAX_* constants above, so these products cannot overflow.
         let cells = self.steps * self.agents;
-        let lengths: [(&str, usize, usize); 9] = [
+        let lengths: [(&str, usize, usize); 10] = [
             ("obs", self.obs.len(), cells * self.obs_dim),
             ("actions", self.actions.len(), cells * self.action_dim),
             ("log_probs", self.log_probs.len(), cells),
@@ -192,6 +195,11 @@ impl RolloutFragment {
                 self.agents * self.obs_dim,
             ),
             ("neighbour_offsets", self.neighbour_offsets.len(), cells + 1),
+            (
+                "lcf_features",
+                self.lcf_features.len(),
+                cells * lcf::FEATURES,
+            ),
         ];
         for (field, got, want) in lengths {
             if got != want {
@@ -201,13 +209,14 @@ impl RolloutFragment {
                 ));
             }
         }
-        let floats: [(&'static str, &[f32]); 6] = [
+        let floats: [(&'static str, &[f32]); 7] = [
             ("obs", &self.obs),
             ("actions", &self.actions),
             ("log_probs", &self.log_probs),
             ("rewards", &self.rewards),
             ("costs", &self.costs),
             ("bootstrap_obs", &self.bootstrap_obs),
+            ("lcf_features", &self.lcf_features),
         ];
         for (field, values) in floats {
             if let Some(index) = values.iter().position(|v| !v.is_finite()) {
@@ -268,7 +277,12 @@ impl RolloutFragment {
             )));
         }
         for (i, e) in self.episodes.iter().enumerate() {
-            let values = [e.total_reward, e.mean_abs_accel, e.max_abs_accel];
+            let values = [
+                e.total_reward,
+                e.mean_abs_accel,
+                e.max_abs_accel,
+                e.energy_kj,
+            ];
             if values.iter().any(|v| !v.is_finite()) {
                 return Err(FragmentError::NonFinite {
                     field: "episodes",
@@ -310,6 +324,7 @@ impl RolloutFragment {
                     mean_abs_accel: e.mean_abs_accel,
                     max_abs_accel: e.max_abs_accel,
                     collisions: e.collisions,
+                    energy_kj: e.energy_kj,
                 })
             })
             .collect::<Result<Vec<_>, FragmentError>>()?;
@@ -332,6 +347,7 @@ impl RolloutFragment {
             bootstrap_obs: msg.bootstrap_obs,
             neighbour_offsets: msg.neighbour_offsets,
             neighbour_ids: msg.neighbour_ids,
+            lcf_features: msg.lcf_features,
             episodes,
             sim_seconds: msg.sim_seconds,
         };
@@ -361,6 +377,7 @@ impl RolloutFragment {
             bootstrap_obs: self.bootstrap_obs,
             neighbour_offsets: self.neighbour_offsets,
             neighbour_ids: self.neighbour_ids,
+            lcf_features: self.lcf_features,
             episodes: self
                 .episodes
                 .iter()
@@ -371,6 +388,7 @@ impl RolloutFragment {
                     mean_abs_accel: e.mean_abs_accel,
                     max_abs_accel: e.max_abs_accel,
                     collisions: e.collisions,
+                    energy_kj: e.energy_kj,
                 })
                 .collect(),
             sim_seconds: self.sim_seconds,
@@ -424,6 +442,9 @@ pub(crate) mod tests {
             bootstrap_obs: vec![0.1; agents * obs_dim],
             neighbour_offsets: vec![0, 1, 2, 3, 4, 4, 4],
             neighbour_ids: vec![1, 0, 1, 0],
+            lcf_features: (0..cells * lcf::FEATURES)
+                .map(|i| i as f32 / 40.0)
+                .collect(),
             episodes: vec![EpisodeStats {
                 outcome: Outcome::Success,
                 length: 2,
@@ -431,6 +452,7 @@ pub(crate) mod tests {
                 mean_abs_accel: 0.7,
                 max_abs_accel: 1.9,
                 collisions: 0,
+                energy_kj: 12.5,
             }],
             sim_seconds: 0.3,
         }
@@ -475,6 +497,23 @@ pub(crate) mod tests {
                 field: "rewards",
                 index: 4
             }
+        );
+
+        let mut p = sample().into_proto();
+        p.lcf_features[3] = f32::NAN;
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err(),
+            FragmentError::NonFinite {
+                field: "lcf_features",
+                index: 3
+            }
+        );
+
+        let mut p = sample().into_proto();
+        p.lcf_features.pop();
+        assert_eq!(
+            RolloutFragment::from_proto(p, None).unwrap_err().reason(),
+            "shape"
         );
 
         let mut p = sample().into_proto();

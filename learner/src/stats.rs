@@ -93,6 +93,7 @@ mod tests {
             mean_abs_accel: length as f32 / 100.0,
             max_abs_accel: length as f32 / 10.0,
             collisions: 0,
+            energy_kj: 0.0,
         }
     }
 

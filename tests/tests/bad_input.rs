@@ -4,6 +4,7 @@
 use std::time::Duration;
 
 use junction_common::fragment::PROTOCOL_VERSION;
+use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_tests::{TempDir, metric_sum, scrape, start_learner};
 use tonic::Code;
@@ -33,6 +34,7 @@ fn valid_fragment() -> proto::RolloutFragment {
         bootstrap_obs: vec![0.5; agents * OBS_DIM],
         neighbour_offsets: vec![0; steps * agents + 1],
         neighbour_ids: vec![],
+        lcf_features: vec![0.5; steps * agents * lcf::FEATURES],
         episodes: vec![],
         sim_seconds: 0.2,
     }

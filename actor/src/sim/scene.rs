@@ -11,15 +11,18 @@ use rand_chacha::ChaCha8Rng;
 
 use junction_common::config::{ScenarioConfig, SceneKind};
 use junction_common::fragment::{EpisodeStats, Outcome};
+use junction_common::lcf;
 use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
 
 use super::SimError;
+use super::angle;
 use super::grid::Grid;
 use super::intersection::Intersection;
 use super::lidar;
 use super::network::{Entry, RoadNetwork};
 use super::observation::{self, RoutePosition};
-use super::vehicle::{BOUNDING_RADIUS, Kinematics, LENGTH, MAX_SPEED, WIDTH};
+use super::reward::{self, StepFacts};
+use super::vehicle::{BOUNDING_RADIUS, Kinematics, LENGTH, WIDTH};
 
 /// A destination counts as reached within this distance of its lane's end (MetaDrive: 5 m).
 const ARRIVAL_TOLERANCE: f32 = 5.0;
@@ -41,6 +44,7 @@ pub(super) struct Car {
     abs_accel_sum: f32,
     max_abs_accel: f32,
     collisions: u32,
+    energy_kj: f32,
 }
 
 /// A crashed car left on the road for a while.
@@ -93,6 +97,7 @@ pub struct Scene {
     alive: Vec<bool>,
     neighbour_offsets: Vec<u32>,
     neighbour_ids: Vec<u32>,
+    lcf_features: Vec<f32>,
     result: StepResult,
     // Scratch space reused every step.
     grid: Grid,
@@ -101,6 +106,8 @@ pub struct Scene {
     lidar: Vec<f32>,
     progress_gain: Vec<f32>,
     accel: Vec<f32>,
+    steer_change: Vec<f32>,
+    energy_kj: Vec<f32>,
     near: Vec<usize>,
     nearby_agents: Vec<u32>,
 }
@@ -147,6 +154,7 @@ impl Scene {
             alive: vec![false; slots],
             neighbour_offsets: vec![0; slots + 1],
             neighbour_ids: Vec::new(),
+            lcf_features: vec![0.0; slots * lcf::FEATURES],
             result: StepResult {
                 rewards: vec![0.0; slots],
                 costs: vec![0.0; slots],
@@ -159,6 +167,8 @@ impl Scene {
             lidar: vec![0.0; config.sensors.lidar_beams],
             progress_gain: vec![0.0; slots],
             accel: vec![0.0; slots],
+            steer_change: vec![0.0; slots],
+            energy_kj: vec![0.0; slots],
             near: Vec::new(),
             nearby_agents: Vec::new(),
         };
@@ -188,6 +198,11 @@ impl Scene {
 
     pub fn neighbours(&self) -> (&[u32], &[u32]) {
         (&self.neighbour_offsets, &self.neighbour_ids)
+    }
+
+    /// S_N of every slot (`lcf::FEATURES` each, zeros for empty slots), for the LCF methods.
+    pub fn lcf_features(&self) -> &[f32] {
+        &self.lcf_features
     }
 
     pub fn steps_since_reset(&self) -> u32 {
@@ -230,19 +245,19 @@ impl Scene {
         let dt = self.config.decision_dt;
 
         // Move every agent and follow its route.
-        let (progress_gain, accel) = (&mut self.progress_gain, &mut self.accel);
         for (slot, car) in self.cars.iter_mut().enumerate() {
             let Some(car) = car else { continue };
             let action = [
                 actions.get(slot * ACTION_DIM).copied().unwrap_or(0.0),
                 actions.get(slot * ACTION_DIM + 1).copied().unwrap_or(0.0),
             ];
-            let speed_before = car.kin.speed;
-            car.kin.advance(action, dt, self.config.substeps);
+            let (speed_before, steer_before) = (car.kin.speed, car.kin.steer);
+            self.energy_kj[slot] = car.kin.advance(action, dt, self.config.substeps);
             let before = car.progress;
             track_route(car, self.network.as_ref());
-            progress_gain[slot] = car.progress - before;
-            accel[slot] = (car.kin.speed - speed_before) / dt;
+            self.progress_gain[slot] = car.progress - before;
+            self.accel[slot] = (car.kin.speed - speed_before) / dt;
+            self.steer_change[slot] = car.kin.steer - steer_before;
             car.age += 1;
         }
         self.obstacles.retain_mut(|o| {
@@ -253,7 +268,6 @@ impl Scene {
         self.detect_collisions();
 
         // Outcomes, rewards, costs.
-        let reward = self.config.reward.clone();
         let horizon_reached = self.steps + 1 >= self.config.horizon;
         for slot in 0..slots {
             let Some(car) = self.cars[slot].as_mut() else {
@@ -261,7 +275,7 @@ impl Scene {
             };
             let route = &self.network.routes()[car.route];
             let on_final_lane = car.lane_index + 1 == route.lanes.len();
-            let final_length = self.network.lanes()[route.lanes[car.lane_index]].length();
+            let lane = &self.network.lanes()[route.lanes[car.lane_index]];
             let outcome = if self.crashed[slot] {
                 Some(Outcome::Crash)
             } else if car
@@ -271,27 +285,31 @@ impl Scene {
                 .any(|&c| !self.network.on_road(c, car.kin.heading))
             {
                 Some(Outcome::OutOfRoad)
-            } else if on_final_lane && car.s >= final_length - ARRIVAL_TOLERANCE {
+            } else if on_final_lane && car.s >= lane.length() - ARRIVAL_TOLERANCE {
                 Some(Outcome::Success)
             } else if car.age >= self.config.agent_horizon || horizon_reached {
                 Some(Outcome::Timeout)
             } else {
                 None
             };
-            let r = match outcome {
-                Some(Outcome::Success) => reward.success,
-                Some(Outcome::Crash) => reward.crash,
-                Some(Outcome::OutOfRoad) => reward.out_of_road,
-                Some(Outcome::Timeout) | None => {
-                    reward.displacement * self.progress_gain[slot]
-                        + reward.speed * car.kin.speed / MAX_SPEED
-                }
+            let facts = StepFacts {
+                progress: self.progress_gain[slot],
+                speed: car.kin.speed,
+                lateral: car.lateral,
+                lane_width: lane.width,
+                heading_error: angle::wrap(car.kin.heading - lane.heading(car.s)),
+                steer_change: self.steer_change[slot],
+                collided: self.crashed[slot],
+                energy_kj: self.energy_kj[slot],
+                outcome,
             };
+            let r = reward::reward(&self.config.reward, &facts);
             self.result.rewards[slot] = r;
+            self.result.costs[slot] = reward::cost(&self.config.cost, &facts);
             if self.crashed[slot] {
-                self.result.costs[slot] = self.config.cost.collision;
                 car.collisions += 1;
             }
+            car.energy_kj += facts.energy_kj;
             car.total_reward += r;
             let accel = self.accel[slot].abs();
             car.abs_accel_sum += accel;
@@ -307,6 +325,7 @@ impl Scene {
                         mean_abs_accel: car.abs_accel_sum / car.age.max(1) as f32,
                         max_abs_accel: car.max_abs_accel,
                         collisions: car.collisions,
+                        energy_kj: car.energy_kj,
                     },
                 });
                 if outcome == Outcome::Crash && self.config.crash_obstacle_steps > 0 {
@@ -399,6 +418,7 @@ impl Scene {
             abs_accel_sum: 0.0,
             max_abs_accel: 0.0,
             collisions: 0,
+            energy_kj: 0.0,
         };
         track_route(&mut car, self.network.as_ref());
         car
@@ -465,8 +485,10 @@ impl Scene {
         self.neighbour_offsets[0] = 0;
         for slot in 0..self.slots() {
             let row = &mut self.observations[slot * obs_dim..(slot + 1) * obs_dim];
+            let features = &mut self.lcf_features[slot * lcf::FEATURES..(slot + 1) * lcf::FEATURES];
             let Some(car) = self.cars[slot].as_ref() else {
                 row.fill(0.0);
+                features.fill(0.0);
                 self.alive[slot] = false;
                 self.neighbour_offsets[slot + 1] = self.neighbour_ids.len() as u32;
                 continue;
@@ -505,6 +527,18 @@ impl Scene {
                 }
             });
             neighbours.sort_unstable();
+            let cars = &self.cars;
+            let motion = |kin: &Kinematics| lcf::Motion {
+                position: kin.position.into(),
+                velocity: (Vec2::from_angle(kin.heading) * kin.speed).into(),
+            };
+            features.copy_from_slice(&lcf::neighbourhood_features(
+                motion(&car.kin),
+                neighbours
+                    .iter()
+                    .filter_map(|&j| cars[j as usize].as_ref().map(|c| motion(&c.kin))),
+                radius,
+            ));
             self.neighbour_ids.extend_from_slice(neighbours);
             self.neighbour_offsets[slot + 1] = self.neighbour_ids.len() as u32;
         }

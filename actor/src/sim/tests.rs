@@ -7,6 +7,7 @@ use rand_chacha::ChaCha8Rng;
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
+use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
 
 use super::autopilot::autopilot_actions;
@@ -64,7 +65,9 @@ fn run_until_done(
 
 #[test]
 fn two_cars_on_crossing_paths_collide() {
-    let mut scene = Scene::new(&config(2), 1).unwrap();
+    let mut collision_only = config(2);
+    collision_only.cost.energy = 0.0;
+    let mut scene = Scene::new(&collision_only, 1).unwrap();
     scene.clear();
     let east = route_from(scene.network(), 0, 0.0);
     let north = route_from(scene.network(), 1, 0.0);
@@ -96,6 +99,42 @@ fn two_cars_on_crossing_paths_collide() {
 }
 
 #[test]
+fn energy_cost_adds_up_to_the_episode_energy() {
+    let mut scene = Scene::new(&config(1), 3).unwrap();
+    scene.clear();
+    let route = route_from(scene.network(), 0, 0.0);
+    scene.place(0, route, 5.0, 0.0, 0.0, 0.0);
+    let beta = scene.config().cost.energy;
+    let mut cost = 0.0;
+    for step in 0..40 {
+        // Full throttle, then braking: braking costs nothing.
+        let throttle = if step < 20 { 1.0 } else { -1.0 };
+        let result = scene.step(&[0.0, throttle]).clone();
+        if step >= 20 {
+            assert_eq!(result.costs[0], 0.0, "no energy while braking");
+        } else {
+            assert!(result.costs[0] > 0.0);
+        }
+        cost += result.costs[0];
+    }
+    // Stop the episode to read its energy: leave the road.
+    let (mut finished, mut step) = (None, 0);
+    while finished.is_none() && step < 300 {
+        let result = scene.step(&[1.0, 1.0]).clone();
+        cost += result.costs[0];
+        finished = result.finished.first().map(|e| e.stats);
+        step += 1;
+    }
+    let stats = finished.expect("the episode ended");
+    assert!(stats.energy_kj > 0.0);
+    assert!(
+        (cost - beta * stats.energy_kj).abs() < 1e-3 * cost.max(1.0),
+        "summed cost {cost} vs β2 · {} kJ",
+        stats.energy_kj
+    );
+}
+
+#[test]
 fn leaving_the_road_and_crossing_the_centre_line_end_out_of_road() {
     let mut scene = Scene::new(&config(1), 2).unwrap();
     scene.clear();
@@ -114,7 +153,9 @@ fn leaving_the_road_and_crossing_the_centre_line_end_out_of_road() {
 
 #[test]
 fn the_autopilot_arrives_on_every_route_from_every_arm() {
-    let mut scene = Scene::new(&config(1), 3).unwrap();
+    let mut collision_only = config(1);
+    collision_only.cost.energy = 0.0;
+    let mut scene = Scene::new(&collision_only, 3).unwrap();
     let routes = scene.network().routes().len();
     for route in 0..routes {
         scene.clear();
@@ -328,6 +369,21 @@ fn neighbourhoods_are_symmetric_and_within_the_radius() {
             .count();
         assert_eq!(mine.len(), expected);
         total += mine.len();
+        let features = &scene.lcf_features()[slot * lcf::FEATURES..(slot + 1) * lcf::FEATURES];
+        assert_eq!(
+            features[0],
+            (mine.len() as f32 / 20.0).min(1.0),
+            "S_N count"
+        );
+        if mine.is_empty() {
+            assert_eq!(features, [0.0, 1.0, 1.0, 0.0, 0.5]);
+        } else {
+            let nearest = mine
+                .iter()
+                .map(|&j| (positions[&(j as usize)] - positions[&slot]).length())
+                .fold(f32::INFINITY, f32::min);
+            assert!((features[2] - nearest / radius).abs() < 1e-5, "S_N nearest");
+        }
     }
     assert!(total > 0);
 }

@@ -1,12 +1,15 @@
 //! The vehicle: MetaDrive's default car as a kinematic bicycle with a longitudinal force model.
 //!
-//! Longitudinal model (also the basis of the energy cost a later scenario option adds):
+//! Longitudinal model (also the basis of the energy cost, paper §3.5):
 //! `m·a = F_engine − F_brake − F_roll − F_drag` with
 //! `F_engine = throttle · 3300 N` (none at or above the top speed), `F_brake = brake · 6600 N`,
 //! `F_roll = 0.015 · m · g` and `F_drag = ½ · 1.225 · 0.30 · 2.2 · v²` (air density, drag
 //! coefficient, frontal area). Speed never goes below 0: no reverse. MetaDrive's Bullet
 //! "forces" (800 engine, 150 brake) are not Newtons on the chassis; ours are calibrated to
 //! 3 m/s² peak acceleration and 6 m/s² peak braking for its 1100 kg car.
+//!
+//! Energy: the work of the engine force, `∫ F_engine · v dt`, in kJ. Regeneration is off:
+//! braking and coasting return nothing, and a car standing still uses nothing.
 //!
 //! Lateral model: yaw rate = v · tan(δ) / wheelbase, steering applied at once. Following the
 //! paper (§3.3), the steering action +1 turns fully right, so δ = −steer · 40°.
@@ -54,13 +57,18 @@ impl Kinematics {
         self.speed * (-self.steer * MAX_STEER_RAD).tan() / WHEELBASE
     }
 
-    /// Net longitudinal acceleration (m/s²) under the current throttle/brake at `speed`.
-    fn acceleration(&self, speed: f32) -> f32 {
-        let engine = if speed < MAX_SPEED {
+    /// Engine force (N) under the current throttle at `speed`.
+    fn engine_force(&self, speed: f32) -> f32 {
+        if speed < MAX_SPEED {
             self.throttle.max(0.0) * MAX_ENGINE_FORCE
         } else {
             0.0
-        };
+        }
+    }
+
+    /// Net longitudinal acceleration (m/s²) under the current throttle/brake at `speed`.
+    fn acceleration(&self, speed: f32) -> f32 {
+        let engine = self.engine_force(speed);
         let resist = if speed > 0.0 {
             (-self.throttle).max(0.0) * MAX_BRAKE_FORCE
                 + ROLLING_RESISTANCE * MASS * GRAVITY
@@ -72,20 +80,23 @@ impl Kinematics {
     }
 
     /// Applies `[steer, throttle_brake]` (clipped; NaN counts as 0) for `substeps` sub-steps
-    /// of `dt / substeps` seconds.
-    pub fn advance(&mut self, action: [f32; 2], dt: f32, substeps: u32) {
+    /// of `dt / substeps` seconds; returns the engine's energy over the step, in kJ.
+    pub fn advance(&mut self, action: [f32; 2], dt: f32, substeps: u32) -> f32 {
         let clean = |a: f32| if a.is_nan() { 0.0 } else { a.clamp(-1.0, 1.0) };
         self.steer = clean(action[0]);
         self.throttle = clean(action[1]);
         let h = dt / substeps.max(1) as f32;
+        let mut energy_j = 0.0;
         for _ in 0..substeps.max(1) {
             let yaw_rate = self.yaw_rate();
             let speed = (self.speed + self.acceleration(self.speed) * h).clamp(0.0, MAX_SPEED);
             let mean_speed = 0.5 * (self.speed + speed);
+            energy_j += self.engine_force(self.speed) * mean_speed * h;
             self.heading = super::angle::wrap(self.heading + yaw_rate * h);
             self.position += Vec2::from_angle(self.heading) * (mean_speed * h);
             self.speed = speed;
         }
+        energy_j / 1000.0
     }
 
     /// The four corners of the body.
@@ -112,6 +123,21 @@ mod tests {
         k.advance([0.0, 1.0], 1.0, 50);
         assert!((2.7..3.0).contains(&k.speed), "{}", k.speed);
         assert!(k.position.y.abs() < 1e-6 && k.position.x > 1.3 && k.position.x < 1.6);
+    }
+
+    #[test]
+    fn energy_is_the_engine_work_and_braking_returns_none() {
+        // From rest, full throttle for 1 s: ≈ 3300 N over the ≈ 1.45 m travelled.
+        let mut k = Kinematics::new(Vec2::ZERO, 0.0, 0.0);
+        let kj = k.advance([0.0, 1.0], 1.0, 50);
+        let expected = MAX_ENGINE_FORCE * k.position.x / 1000.0;
+        assert!(
+            (kj - expected).abs() < 0.01 * expected,
+            "{kj} vs {expected}"
+        );
+        assert_eq!(k.advance([0.0, -1.0], 0.1, 5), 0.0, "no regeneration");
+        let mut parked = Kinematics::new(Vec2::ZERO, 0.0, 0.0);
+        assert_eq!(parked.advance([0.0, 0.0], 0.1, 5), 0.0);
     }
 
     #[test]
