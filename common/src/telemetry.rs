@@ -37,6 +37,8 @@ pub mod names {
     pub const LEARNER_SIMULATED_SECONDS: &str = "junction_learner_simulated_seconds_total";
     pub const LEARNER_POLICY_LAG: &str = "junction_learner_policy_lag_versions";
     pub const LEARNER_LEARNING_RATE: &str = "junction_learner_learning_rate";
+    pub const LEARNER_LCF_MEAN: &str = "junction_learner_lcf_mean_degrees";
+    pub const LEARNER_LCF_STD: &str = "junction_learner_lcf_std_degrees";
     pub const LEARNER_NONFINITE_MINIBATCHES: &str =
         "junction_learner_nonfinite_loss_minibatches_total";
     pub const LEARNER_POLICY_LOSS: &str = "junction_learner_policy_loss";

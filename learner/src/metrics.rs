@@ -47,6 +47,8 @@ pub struct LearnerMetrics {
     accel_mean: GaugeVec,
     accel_max: GaugeVec,
     learning_rate: Gauge,
+    lcf_mean: Gauge,
+    lcf_std: Gauge,
     nonfinite_minibatches: IntCounter,
     policy_loss: Gauge,
     value_loss: Gauge,
@@ -208,6 +210,14 @@ impl LearnerMetrics {
                 names::LEARNER_LEARNING_RATE,
                 "Optimiser step size of the last update.",
             )?,
+            lcf_mean: gauge(
+                names::LEARNER_LCF_MEAN,
+                "Mean LCF angle phi over the last batch, degrees (0 = selfish, 90 = fully cooperative).",
+            )?,
+            lcf_std: gauge(
+                names::LEARNER_LCF_STD,
+                "Standard deviation of the LCF angle phi over the last batch, degrees.",
+            )?,
             nonfinite_minibatches: counter(
                 names::LEARNER_NONFINITE_MINIBATCHES,
                 "Minibatches skipped because their loss was NaN or infinite.",
@@ -270,6 +280,8 @@ impl LearnerMetrics {
     pub fn record_update(&self, stats: &UpdateStats, seconds: f64) {
         self.updates.inc();
         self.learning_rate.set(stats.learning_rate);
+        self.lcf_mean.set(stats.lcf_mean_deg);
+        self.lcf_std.set(stats.lcf_std_deg);
         self.nonfinite_minibatches
             .inc_by(stats.skipped_minibatches as u64);
         self.update_seconds.observe(seconds);

@@ -26,6 +26,10 @@ pub struct UpdateStats {
     pub grad_norm: f64,
     /// The optimiser's step size during this update.
     pub learning_rate: f64,
+    /// Mean and standard deviation of the LCF angle φ over the batch, degrees (0 and 0 for
+    /// methods without coordination: φ = 0 is IPPO).
+    pub lcf_mean_deg: f64,
+    pub lcf_std_deg: f64,
     /// Minibatches skipped because their loss was NaN or infinite.
     pub skipped_minibatches: usize,
 }
