@@ -49,7 +49,7 @@ pub fn run(scenario: &ScenarioConfig, steps: u64, seed: u64) -> Result<BenchRepo
     Ok(BenchReport {
         bench: "simulator",
         scenario: scenario.name.clone(),
-        agents: scenario.agents,
+        agents: scenario.agent_count(),
         lidar_beams: scenario.sensors.lidar_beams,
         steps,
         seconds,

@@ -71,6 +71,7 @@ pub struct RunSection {
 pub struct ScenarioConfig {
     pub name: String,
     pub kind: SceneKind,
+    pub traffic: Traffic,
     pub agents: usize,
     pub horizon: u32,
     pub agent_horizon: u32,
@@ -83,6 +84,21 @@ pub struct ScenarioConfig {
     pub sensors: SensorConfig,
     pub reward: RewardConfig,
     pub cost: CostConfig,
+}
+
+/// Traffic density (paper §4.1): presets scale the scene's reference agent count (MetaDrive's)
+/// and set how eagerly empty slots are refilled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Traffic {
+    /// `agents` and `spawn.respawn_probability` as configured.
+    Custom,
+    /// Half the reference agents; an empty slot refills with probability 0.05 per step.
+    Light,
+    /// The reference agents (intersection 30); refills as soon as a spawn point is free.
+    Medium,
+    /// One and a half times the reference agents; refills as soon as a spawn point is free.
+    Heavy,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -117,6 +133,7 @@ pub struct SpawnConfig {
     pub lateral_jitter: f32,
     pub respawn_clear_length: f32,
     pub respawn_clear_width: f32,
+    pub respawn_probability: f32,
     pub initial_speed: f32,
 }
 
@@ -311,7 +328,36 @@ impl RunConfig {
     }
 }
 
+impl SceneKind {
+    /// MetaDrive's agent count for this kind of scene: the `medium` traffic preset.
+    pub fn reference_agents(self) -> usize {
+        match self {
+            SceneKind::Intersection => 30,
+        }
+    }
+}
+
 impl ScenarioConfig {
+    /// Learning agents alive at once, after the traffic preset.
+    pub fn agent_count(&self) -> usize {
+        let reference = self.kind.reference_agents();
+        match self.traffic {
+            Traffic::Custom => self.agents,
+            Traffic::Light => reference / 2,
+            Traffic::Medium => reference,
+            Traffic::Heavy => reference * 3 / 2,
+        }
+    }
+
+    /// Chance per step that an empty slot is refilled (when a spawn point is free).
+    pub fn respawn_probability(&self) -> f32 {
+        match self.traffic {
+            Traffic::Custom => self.spawn.respawn_probability,
+            Traffic::Light => 0.05,
+            Traffic::Medium | Traffic::Heavy => 1.0,
+        }
+    }
+
     /// Parses a scenario sent by the learner (or a scenario file), layered over the defaults.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
         Ok(RunConfig::from_layers(&[Layer::Scenario(text)])?.scenario)
@@ -359,6 +405,9 @@ impl ScenarioConfig {
             problems.push(
                 "scenario.intersection.approach_length must hold at least one spawn slot".into(),
             );
+        }
+        if !(0.0..=1.0).contains(&s.respawn_probability) {
+            problems.push("scenario.spawn.respawn_probability must be in [0, 1]".into());
         }
         if !(s.initial_speed >= 0.0) {
             problems.push("scenario.spawn.initial_speed must be >= 0".into());

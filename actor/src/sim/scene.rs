@@ -130,9 +130,9 @@ impl Scene {
                 k += 1;
             }
         }
-        if config.agents > spawn_points.len() {
+        if config.agent_count() > spawn_points.len() {
             return Err(SimError::TooManyAgents {
-                agents: config.agents,
+                agents: config.agent_count(),
                 spawn_points: spawn_points.len(),
             });
         }
@@ -141,7 +141,7 @@ impl Scene {
             .iter()
             .flat_map(|l| [l.start(), l.end()])
             .fold(0.0f32, |m, p| m.max(p.x.abs()).max(p.y.abs()));
-        let slots = config.agents;
+        let slots = config.agent_count();
         let mut scene = Scene {
             config: config.clone(),
             network,
@@ -361,11 +361,17 @@ impl Scene {
         self.refresh();
     }
 
-    /// Fills empty slots with new cars at the first spawn point of lanes whose start is clear.
+    /// Fills empty slots with new cars at the first spawn point of lanes whose start is clear,
+    /// each with the scenario's respawn probability.
     fn respawn(&mut self) {
         let spacing = self.config.spawn.slot_spacing;
+        let probability = self.config.respawn_probability();
         for slot in 0..self.slots() {
             if self.cars[slot].is_some() {
+                continue;
+            }
+            // Drawn only for rates below 1, so the default keeps its random sequence.
+            if probability < 1.0 && !self.rng.gen_bool(f64::from(probability)) {
                 continue;
             }
             let free: Vec<usize> = (0..self.network.entries().len())

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::ScenarioConfig;
+use junction_common::config::{ScenarioConfig, Traffic};
 use junction_common::fragment::Outcome;
 use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
@@ -173,6 +173,39 @@ fn the_autopilot_arrives_on_every_route_from_every_arm() {
         assert_eq!(outcome, Outcome::Success, "route {route}");
         assert_eq!((reward, cost), (scene.config().reward.success, 0.0));
     }
+}
+
+#[test]
+fn traffic_presets_set_the_agents_and_the_refill_rate() {
+    let mut c = config(7);
+    for (traffic, slots) in [
+        (Traffic::Custom, 7),
+        (Traffic::Light, 15),
+        (Traffic::Medium, 30),
+        (Traffic::Heavy, 45),
+    ] {
+        c.traffic = traffic;
+        assert_eq!(Scene::new(&c, 1).unwrap().slots(), slots, "{traffic:?}");
+    }
+    // Share of slots occupied while the autopilot drives: light traffic refills slowly.
+    let occupancy = |traffic: Traffic| {
+        let mut c = config(30);
+        c.traffic = traffic;
+        let mut scene = Scene::new(&c, 5).unwrap();
+        let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
+        let mut alive = 0usize;
+        for _ in 0..600 {
+            autopilot_actions(&scene, 9.0, &mut actions);
+            scene.step(&actions);
+            alive += scene.alive().iter().filter(|a| **a).count();
+        }
+        alive as f64 / (600 * scene.slots()) as f64
+    };
+    let (slow, eager) = (occupancy(Traffic::Light), occupancy(Traffic::Medium));
+    assert!(
+        slow + 0.05 < eager,
+        "occupancy light {slow:.3} vs medium {eager:.3}"
+    );
 }
 
 #[test]
