@@ -144,6 +144,7 @@ impl RolloutWorker {
                 f.costs.extend_from_slice(&result.costs);
                 f.dones.extend_from_slice(&result.dones);
                 f.episodes.extend(result.finished.iter().map(|e| e.stats));
+                f.human_episodes.extend_from_slice(&result.human_finished);
                 f.steps += 1;
                 f.sim_seconds += scene.config().decision_dt;
             }

@@ -81,6 +81,7 @@ pub struct ScenarioConfig {
     pub substeps: u32,
     pub intersection: IntersectionConfig,
     pub spawn: SpawnConfig,
+    pub humans: HumanConfig,
     pub sensors: SensorConfig,
     pub reward: RewardConfig,
     pub cost: CostConfig,
@@ -174,6 +175,19 @@ pub enum RewardKind {
 pub struct CostConfig {
     pub collision: f32,
     pub energy: f32,
+}
+
+/// Non-connected, human-driven vehicles (IDM car following + gap acceptance).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HumanConfig {
+    pub share: f32,
+    pub desired_speed: f32,
+    pub time_headway: f32,
+    pub min_gap: f32,
+    pub max_accel: f32,
+    pub comfort_decel: f32,
+    pub critical_gap: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -349,6 +363,12 @@ impl ScenarioConfig {
         }
     }
 
+    /// Human-driven vehicles alive at once: `humans.share` of all vehicles.
+    pub fn human_count(&self) -> usize {
+        let share = self.humans.share;
+        (self.agent_count() as f32 * share / (1.0 - share)).round() as usize
+    }
+
     /// Chance per step that an empty slot is refilled (when a spawn point is free).
     pub fn respawn_probability(&self) -> f32 {
         match self.traffic {
@@ -404,6 +424,22 @@ impl ScenarioConfig {
         if !(i.approach_length >= s.slot_spacing) {
             problems.push(
                 "scenario.intersection.approach_length must hold at least one spawn slot".into(),
+            );
+        }
+        let h = &self.humans;
+        if !(0.0..=0.9).contains(&h.share) {
+            problems.push("scenario.humans.share must be in [0, 0.9]".into());
+        }
+        let human_positive = [
+            h.desired_speed,
+            h.time_headway,
+            h.max_accel,
+            h.comfort_decel,
+            h.critical_gap,
+        ];
+        if human_positive.iter().any(|v| !(*v > 0.0)) || !(h.min_gap >= 0.0) {
+            problems.push(
+                "scenario.humans: desired_speed, time_headway, max_accel, comfort_decel and critical_gap must be > 0, min_gap >= 0".into(),
             );
         }
         if !(0.0..=1.0).contains(&s.respawn_probability) {

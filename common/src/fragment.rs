@@ -88,7 +88,47 @@ pub struct RolloutFragment {
     /// S_N per (step, slot), `lcf::FEATURES` each.
     pub lcf_features: Vec<f32>,
     pub episodes: Vec<EpisodeStats>,
+    /// Episodes of human-driven vehicles (not trained on; counted separately).
+    pub human_episodes: Vec<EpisodeStats>,
     pub sim_seconds: f32,
+}
+
+impl EpisodeStats {
+    fn decode_all(episodes: &[proto::EpisodeStats]) -> Result<Vec<EpisodeStats>, FragmentError> {
+        episodes
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let outcome = Outcome::from_code(e.outcome).ok_or_else(|| {
+                    FragmentError::Invariant(format!(
+                        "episode {i} has unknown outcome {}",
+                        e.outcome
+                    ))
+                })?;
+                Ok(EpisodeStats {
+                    outcome,
+                    length: e.length,
+                    total_reward: e.total_reward,
+                    mean_abs_accel: e.mean_abs_accel,
+                    max_abs_accel: e.max_abs_accel,
+                    collisions: e.collisions,
+                    energy_kj: e.energy_kj,
+                })
+            })
+            .collect()
+    }
+
+    fn to_proto(&self) -> proto::EpisodeStats {
+        proto::EpisodeStats {
+            outcome: self.outcome as u32,
+            length: self.length,
+            total_reward: self.total_reward,
+            mean_abs_accel: self.mean_abs_accel,
+            max_abs_accel: self.max_abs_accel,
+            collisions: self.collisions,
+            energy_kj: self.energy_kj,
+        }
+    }
 }
 
 /// Why a fragment was refused; `reason()` is the bounded label used in metrics.
@@ -276,18 +316,20 @@ impl RolloutFragment {
                 self.agents
             )));
         }
-        for (i, e) in self.episodes.iter().enumerate() {
-            let values = [
-                e.total_reward,
-                e.mean_abs_accel,
-                e.max_abs_accel,
-                e.energy_kj,
-            ];
-            if values.iter().any(|v| !v.is_finite()) {
-                return Err(FragmentError::NonFinite {
-                    field: "episodes",
-                    index: i,
-                });
+        for (field, episodes) in [
+            ("episodes", &self.episodes),
+            ("human_episodes", &self.human_episodes),
+        ] {
+            for (index, e) in episodes.iter().enumerate() {
+                let values = [
+                    e.total_reward,
+                    e.mean_abs_accel,
+                    e.max_abs_accel,
+                    e.energy_kj,
+                ];
+                if values.iter().any(|v| !v.is_finite()) {
+                    return Err(FragmentError::NonFinite { field, index });
+                }
             }
         }
         Ok(())
@@ -306,28 +348,8 @@ impl RolloutFragment {
         }
         let dones = flags("dones", &msg.dones)?;
         let alive = flags("alive", &msg.alive)?;
-        let episodes = msg
-            .episodes
-            .iter()
-            .enumerate()
-            .map(|(i, e)| {
-                let outcome = Outcome::from_code(e.outcome).ok_or_else(|| {
-                    FragmentError::Invariant(format!(
-                        "episode {i} has unknown outcome {}",
-                        e.outcome
-                    ))
-                })?;
-                Ok(EpisodeStats {
-                    outcome,
-                    length: e.length,
-                    total_reward: e.total_reward,
-                    mean_abs_accel: e.mean_abs_accel,
-                    max_abs_accel: e.max_abs_accel,
-                    collisions: e.collisions,
-                    energy_kj: e.energy_kj,
-                })
-            })
-            .collect::<Result<Vec<_>, FragmentError>>()?;
+        let episodes = EpisodeStats::decode_all(&msg.episodes)?;
+        let human_episodes = EpisodeStats::decode_all(&msg.human_episodes)?;
         let fragment = RolloutFragment {
             actor_id: msg.actor_id,
             sequence: msg.sequence,
@@ -349,6 +371,7 @@ impl RolloutFragment {
             neighbour_ids: msg.neighbour_ids,
             lcf_features: msg.lcf_features,
             episodes,
+            human_episodes,
             sim_seconds: msg.sim_seconds,
         };
         fragment.validate(expected_dims)?;
@@ -378,18 +401,11 @@ impl RolloutFragment {
             neighbour_offsets: self.neighbour_offsets,
             neighbour_ids: self.neighbour_ids,
             lcf_features: self.lcf_features,
-            episodes: self
-                .episodes
+            episodes: self.episodes.iter().map(EpisodeStats::to_proto).collect(),
+            human_episodes: self
+                .human_episodes
                 .iter()
-                .map(|e| proto::EpisodeStats {
-                    outcome: e.outcome as u32,
-                    length: e.length,
-                    total_reward: e.total_reward,
-                    mean_abs_accel: e.mean_abs_accel,
-                    max_abs_accel: e.max_abs_accel,
-                    collisions: e.collisions,
-                    energy_kj: e.energy_kj,
-                })
+                .map(EpisodeStats::to_proto)
                 .collect(),
             sim_seconds: self.sim_seconds,
         }
@@ -453,6 +469,15 @@ pub(crate) mod tests {
                 max_abs_accel: 1.9,
                 collisions: 0,
                 energy_kj: 12.5,
+            }],
+            human_episodes: vec![EpisodeStats {
+                outcome: Outcome::Crash,
+                length: 40,
+                total_reward: 0.0,
+                mean_abs_accel: 0.4,
+                max_abs_accel: 2.5,
+                collisions: 1,
+                energy_kj: 3.0,
             }],
             sim_seconds: 0.3,
         }

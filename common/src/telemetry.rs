@@ -24,6 +24,7 @@ pub mod names {
     pub const LEARNER_QUEUE_FRAGMENTS: &str = "junction_learner_ingest_queue_fragments";
     pub const LEARNER_TRANSPORT_BYTES: &str = "junction_learner_transport_received_bytes_total";
     pub const LEARNER_EPISODES: &str = "junction_learner_episodes_total";
+    pub const LEARNER_HUMAN_EPISODES: &str = "junction_learner_human_episodes_total";
     pub const LEARNER_SUCCESS_RATE: &str = "junction_learner_success_rate";
     pub const LEARNER_CRASH_RATE: &str = "junction_learner_crash_rate";
     pub const LEARNER_OUT_OF_ROAD_RATE: &str = "junction_learner_out_of_road_rate";

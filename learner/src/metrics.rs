@@ -7,7 +7,7 @@ use prometheus::{
 
 use junction_common::telemetry::names;
 
-use junction_common::fragment::{EpisodeStats, FragmentError, Outcome};
+use junction_common::fragment::{FragmentError, Outcome, RolloutFragment};
 
 use crate::algo::UpdateStats;
 use crate::stats::WindowSummary;
@@ -34,6 +34,7 @@ pub struct LearnerMetrics {
     pub queue_fragments: IntGauge,
     pub transport_bytes: IntCounterVec,
     pub episodes: IntCounterVec,
+    human_episodes: IntCounterVec,
     pub policy_lag: Histogram,
     collisions: IntCounterVec,
     simulated_seconds: CounterVec,
@@ -163,6 +164,11 @@ impl LearnerMetrics {
                 "Finished agent episodes, by scenario and outcome.",
                 &["scenario", "outcome"],
             )?,
+            human_episodes: counter_vec(
+                names::LEARNER_HUMAN_EPISODES,
+                "Finished episodes of human-driven (non-connected) vehicles, by scenario and outcome.",
+                &["scenario", "outcome"],
+            )?,
             success_rate: scenario_gauge(
                 names::LEARNER_SUCCESS_RATE,
                 "Share of recent episodes that reached their destination.",
@@ -201,7 +207,7 @@ impl LearnerMetrics {
             )?,
             collisions: counter_vec(
                 names::LEARNER_COLLISIONS,
-                "Collisions of finished episodes, by scenario; divide its rate by the rate of simulated seconds for collisions per simulated second.",
+                "Collisions of finished episodes of agents and human drivers, by scenario; divide its rate by the rate of simulated seconds for collisions per simulated second.",
                 &["scenario"],
             )?,
             simulated_seconds,
@@ -256,25 +262,37 @@ impl LearnerMetrics {
         for outcome in Outcome::ALL {
             self.episodes
                 .with_label_values(&[scenario, outcome.label()]);
+            self.human_episodes
+                .with_label_values(&[scenario, outcome.label()]);
         }
         self.collisions.with_label_values(&[scenario]);
         self.simulated_seconds.with_label_values(&[scenario]);
     }
 
     /// Counts what one received fragment simulated: its episodes, collisions and scene time.
-    pub fn record_fragment(&self, scenario: &str, episodes: &[EpisodeStats], sim_seconds: f32) {
-        for episode in episodes {
-            self.episodes
-                .with_label_values(&[scenario, episode.outcome.label()])
-                .inc();
+    pub fn record_fragment(&self, scenario: &str, fragment: &RolloutFragment) {
+        for (counter, episodes) in [
+            (&self.episodes, &fragment.episodes),
+            (&self.human_episodes, &fragment.human_episodes),
+        ] {
+            for episode in episodes {
+                counter
+                    .with_label_values(&[scenario, episode.outcome.label()])
+                    .inc();
+            }
         }
-        let collisions: u64 = episodes.iter().map(|e| u64::from(e.collisions)).sum();
+        let collisions: u64 = fragment
+            .episodes
+            .iter()
+            .chain(&fragment.human_episodes)
+            .map(|e| u64::from(e.collisions))
+            .sum();
         self.collisions
             .with_label_values(&[scenario])
             .inc_by(collisions);
         self.simulated_seconds
             .with_label_values(&[scenario])
-            .inc_by(f64::from(sim_seconds));
+            .inc_by(f64::from(fragment.sim_seconds));
     }
 
     pub fn record_update(&self, stats: &UpdateStats, seconds: f64) {

@@ -133,11 +133,7 @@ impl Trainer {
                         window.push(*episode);
                     }
                     let metrics = &self.shared.metrics;
-                    metrics.record_fragment(
-                        &config.scenario.name,
-                        &fragment.episodes,
-                        fragment.sim_seconds,
-                    );
+                    metrics.record_fragment(&config.scenario.name, &fragment);
                     let lag = self
                         .progress
                         .version

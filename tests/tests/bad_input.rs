@@ -36,6 +36,7 @@ fn valid_fragment() -> proto::RolloutFragment {
         neighbour_ids: vec![],
         lcf_features: vec![0.5; steps * agents * lcf::FEATURES],
         episodes: vec![],
+        human_episodes: vec![],
         sim_seconds: 0.2,
     }
 }

@@ -27,6 +27,17 @@ pub fn route_point(network: &dyn RoadNetwork, route: &Route, progress: f32) -> V
     network.lanes()[route.lanes[i]].point(progress - route.offsets[i])
 }
 
+/// The speed (m/s) at which the bends of this lane and the next keep lateral acceleration
+/// comfortable; infinite on straight road.
+pub fn bend_speed(network: &dyn RoadNetwork, route: &Route, lane_index: usize) -> f32 {
+    route.lanes[lane_index..route.lanes.len().min(lane_index + 2)]
+        .iter()
+        .map(|&l| network.lanes()[l].bend().0.abs())
+        .filter(|&r| r > 0.0)
+        .map(|r| (COMFORT_LATERAL_ACCEL * r).sqrt())
+        .fold(f32::INFINITY, f32::min)
+}
+
 /// Writes `[steer, throttle_brake]` for every alive slot into `out` (zeros elsewhere).
 pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) {
     out.fill(0.0);
@@ -52,17 +63,10 @@ pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) 
             .flat_map(|k| [k, (beams - k) % beams])
             .map(|b| lidar[b] * range)
             .fold(f32::INFINITY, f32::min);
-        // Slow down for the bend of this lane or the next one.
-        let bend_speed = route.lanes[car.lane_index..route.lanes.len().min(car.lane_index + 2)]
-            .iter()
-            .map(|&l| scene.network().lanes()[l].bend().0.abs())
-            .filter(|&r| r > 0.0)
-            .map(|r| (COMFORT_LATERAL_ACCEL * r).sqrt())
-            .fold(f32::INFINITY, f32::min);
         let desired = if front < FOLLOW_GAP {
             0.0
         } else {
-            target_speed_mps.min(bend_speed)
+            target_speed_mps.min(bend_speed(scene.network(), route, car.lane_index))
         };
         let throttle = (0.5 * (desired - car.kin.speed)).clamp(-1.0, 1.0);
         out[slot * ACTION_DIM] = steer;

@@ -8,6 +8,7 @@
 mod angle;
 pub mod autopilot;
 mod grid;
+mod human;
 pub mod intersection;
 pub mod lane;
 mod lidar;

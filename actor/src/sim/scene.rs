@@ -17,6 +17,7 @@ use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
 use super::SimError;
 use super::angle;
 use super::grid::Grid;
+use super::human::{self, Seen};
 use super::intersection::Intersection;
 use super::lidar;
 use super::network::{Entry, RoadNetwork};
@@ -70,6 +71,8 @@ pub struct StepResult {
     pub finished: Vec<FinishedEpisode>,
     /// Contact events this step (vehicle–vehicle or vehicle–obstacle pairs).
     pub collisions: u32,
+    /// Episodes of human-driven vehicles that ended this step (reward 0: they do not learn).
+    pub human_finished: Vec<EpisodeStats>,
 }
 
 /// A body, for rendering and tests.
@@ -80,15 +83,18 @@ pub struct VehicleView {
     pub speed: f32,
     pub length: f32,
     pub width: f32,
-    /// The agent slot, or None for a crashed car left as an obstacle.
+    /// The agent slot, or None for a crashed car left as an obstacle or a human driver.
     pub slot: Option<usize>,
+    pub human: bool,
 }
 
 pub struct Scene {
     config: ScenarioConfig,
     network: Box<dyn RoadNetwork>,
     rng: ChaCha8Rng,
+    /// Learning agents in slots `0..agents`, human drivers after them.
     cars: Vec<Option<Car>>,
+    agents: usize,
     obstacles: Vec<Obstacle>,
     steps: u32,
     /// Every spawn point: (entry index, distance along the entry lane).
@@ -108,6 +114,7 @@ pub struct Scene {
     accel: Vec<f32>,
     steer_change: Vec<f32>,
     energy_kj: Vec<f32>,
+    human_actions: Vec<[f32; 2]>,
     near: Vec<usize>,
     nearby_agents: Vec<u32>,
 }
@@ -130,9 +137,10 @@ impl Scene {
                 k += 1;
             }
         }
-        if config.agent_count() > spawn_points.len() {
+        let vehicles = config.agent_count() + config.human_count();
+        if vehicles > spawn_points.len() {
             return Err(SimError::TooManyAgents {
-                agents: config.agent_count(),
+                agents: vehicles,
                 spawn_points: spawn_points.len(),
             });
         }
@@ -146,7 +154,8 @@ impl Scene {
             config: config.clone(),
             network,
             rng: ChaCha8Rng::seed_from_u64(seed),
-            cars: vec![None; slots],
+            cars: vec![None; vehicles],
+            agents: slots,
             obstacles: Vec::new(),
             steps: 0,
             spawn_points,
@@ -163,12 +172,13 @@ impl Scene {
             },
             grid: Grid::new(extent + GRID_CELL, GRID_CELL),
             bodies: Vec::new(),
-            crashed: vec![false; slots],
+            crashed: vec![false; vehicles],
             lidar: vec![0.0; config.sensors.lidar_beams],
-            progress_gain: vec![0.0; slots],
-            accel: vec![0.0; slots],
-            steer_change: vec![0.0; slots],
-            energy_kj: vec![0.0; slots],
+            progress_gain: vec![0.0; vehicles],
+            accel: vec![0.0; vehicles],
+            steer_change: vec![0.0; vehicles],
+            energy_kj: vec![0.0; vehicles],
+            human_actions: vec![[0.0; 2]; vehicles - slots],
             near: Vec::new(),
             nearby_agents: Vec::new(),
         };
@@ -180,8 +190,9 @@ impl Scene {
         &self.config
     }
 
+    /// Learning-agent slots (human drivers are not among them).
     pub fn slots(&self) -> usize {
-        self.cars.len()
+        self.agents
     }
 
     pub fn obs_dim(&self) -> usize {
@@ -218,20 +229,26 @@ impl Scene {
     }
 
     pub fn vehicles(&self) -> impl Iterator<Item = VehicleView> + '_ {
-        let view = |kin: &Kinematics, slot| VehicleView {
+        let agents = self.agents;
+        let view = |kin: &Kinematics, slot: Option<usize>, human| VehicleView {
             position: kin.position,
             heading: kin.heading,
             speed: kin.speed,
             length: LENGTH,
             width: WIDTH,
             slot,
+            human,
         };
-        let cars = self
-            .cars
-            .iter()
-            .enumerate()
-            .filter_map(move |(slot, c)| c.as_ref().map(|c| view(&c.kin, Some(slot))));
-        cars.chain(self.obstacles.iter().map(move |o| view(&o.kin, None)))
+        let cars = self.cars.iter().enumerate().filter_map(move |(i, c)| {
+            let human = i >= agents;
+            c.as_ref()
+                .map(|c| view(&c.kin, (!human).then_some(i), human))
+        });
+        cars.chain(
+            self.obstacles
+                .iter()
+                .map(move |o| view(&o.kin, None, false)),
+        )
     }
 
     /// Advances one decision step; see [`StepResult`].
@@ -241,16 +258,23 @@ impl Scene {
         self.result.costs.fill(0.0);
         self.result.dones.fill(false);
         self.result.finished.clear();
+        self.result.human_finished.clear();
         self.result.collisions = 0;
         let dt = self.config.decision_dt;
+        self.plan_human_drivers();
 
-        // Move every agent and follow its route.
+        // Move every vehicle and follow its route.
+        let agents = self.agents;
         for (slot, car) in self.cars.iter_mut().enumerate() {
             let Some(car) = car else { continue };
-            let action = [
-                actions.get(slot * ACTION_DIM).copied().unwrap_or(0.0),
-                actions.get(slot * ACTION_DIM + 1).copied().unwrap_or(0.0),
-            ];
+            let action = if slot < agents {
+                [
+                    actions.get(slot * ACTION_DIM).copied().unwrap_or(0.0),
+                    actions.get(slot * ACTION_DIM + 1).copied().unwrap_or(0.0),
+                ]
+            } else {
+                self.human_actions[slot - agents]
+            };
             let (speed_before, steer_before) = (car.kin.speed, car.kin.steer);
             self.energy_kj[slot] = car.kin.advance(action, dt, self.config.substeps);
             let before = car.progress;
@@ -269,7 +293,7 @@ impl Scene {
 
         // Outcomes, rewards, costs.
         let horizon_reached = self.steps + 1 >= self.config.horizon;
-        for slot in 0..slots {
+        for slot in 0..self.cars.len() {
             let Some(car) = self.cars[slot].as_mut() else {
                 continue;
             };
@@ -303,9 +327,16 @@ impl Scene {
                 energy_kj: self.energy_kj[slot],
                 outcome,
             };
-            let r = reward::reward(&self.config.reward, &facts);
-            self.result.rewards[slot] = r;
-            self.result.costs[slot] = reward::cost(&self.config.cost, &facts);
+            let human = slot >= slots;
+            let r = if human {
+                0.0
+            } else {
+                reward::reward(&self.config.reward, &facts)
+            };
+            if !human {
+                self.result.rewards[slot] = r;
+                self.result.costs[slot] = reward::cost(&self.config.cost, &facts);
+            }
             if self.crashed[slot] {
                 car.collisions += 1;
             }
@@ -315,19 +346,21 @@ impl Scene {
             car.abs_accel_sum += accel;
             car.max_abs_accel = car.max_abs_accel.max(accel);
             if let Some(outcome) = outcome {
-                self.result.dones[slot] = true;
-                self.result.finished.push(FinishedEpisode {
-                    slot,
-                    stats: EpisodeStats {
-                        outcome,
-                        length: car.age,
-                        total_reward: car.total_reward,
-                        mean_abs_accel: car.abs_accel_sum / car.age.max(1) as f32,
-                        max_abs_accel: car.max_abs_accel,
-                        collisions: car.collisions,
-                        energy_kj: car.energy_kj,
-                    },
-                });
+                let stats = EpisodeStats {
+                    outcome,
+                    length: car.age,
+                    total_reward: car.total_reward,
+                    mean_abs_accel: car.abs_accel_sum / car.age.max(1) as f32,
+                    max_abs_accel: car.max_abs_accel,
+                    collisions: car.collisions,
+                    energy_kj: car.energy_kj,
+                };
+                if human {
+                    self.result.human_finished.push(stats);
+                } else {
+                    self.result.dones[slot] = true;
+                    self.result.finished.push(FinishedEpisode { slot, stats });
+                }
                 if outcome == Outcome::Crash && self.config.crash_obstacle_steps > 0 {
                     self.obstacles.push(Obstacle {
                         kin: car.kin,
@@ -366,7 +399,7 @@ impl Scene {
     fn respawn(&mut self) {
         let spacing = self.config.spawn.slot_spacing;
         let probability = self.config.respawn_probability();
-        for slot in 0..self.slots() {
+        for slot in 0..self.cars.len() {
             if self.cars[slot].is_some() {
                 continue;
             }
@@ -445,6 +478,29 @@ impl Scene {
     }
 
     /// Marks every agent touching another body as crashed; counts contact pairs.
+    /// Chooses every human driver's action from the state the agents observed.
+    fn plan_human_drivers(&mut self) {
+        let seen = |kin: &Kinematics| Seen {
+            position: kin.position,
+            heading: kin.heading,
+            speed: kin.speed,
+        };
+        let (cars, obstacles) = (&self.cars, &self.obstacles);
+        for (h, action) in self.human_actions.iter_mut().enumerate() {
+            let me = self.agents + h;
+            let Some(car) = cars[me].as_ref() else {
+                continue;
+            };
+            let others = cars
+                .iter()
+                .enumerate()
+                .filter(move |&(j, _)| j != me)
+                .filter_map(|(_, c)| c.as_ref().map(|c| seen(&c.kin)))
+                .chain(obstacles.iter().map(|o| seen(&o.kin)));
+            *action = human::drive(car, self.network.as_ref(), &self.config.humans, others);
+        }
+    }
+
     fn detect_collisions(&mut self) {
         self.crashed.fill(false);
         self.rebuild_bodies();
@@ -487,6 +543,7 @@ impl Scene {
         let obs_dim = self.obs_dim();
         let range = self.config.sensors.lidar_range;
         let radius = self.config.neighbour_radius;
+        let agents = self.agents;
         self.neighbour_ids.clear();
         self.neighbour_offsets[0] = 0;
         for slot in 0..self.slots() {
@@ -526,7 +583,7 @@ impl Scene {
             observation::write_lidar(row, &self.lidar, range);
             neighbours.clear();
             grid.for_each_near(p, radius, |j| {
-                if let Some(other) = bodies[j].2 {
+                if let Some(other) = bodies[j].2.filter(|&o| o < agents) {
                     if other != slot && (bodies[j].0 - p).length() <= radius {
                         neighbours.push(other as u32);
                     }

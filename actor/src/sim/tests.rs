@@ -209,6 +209,69 @@ fn traffic_presets_set_the_agents_and_the_refill_rate() {
 }
 
 #[test]
+fn a_human_driver_stops_behind_a_stopped_car() {
+    let mut c = config(1);
+    c.humans.share = 0.5; // one human beside the one agent
+    let mut scene = Scene::new(&c, 6).unwrap();
+    scene.clear();
+    let route = route_from(scene.network(), 0, 0.0);
+    scene.place(0, route, 40.0, 0.0, 0.0, 0.0);
+    scene.place(1, route, 5.0, 0.0, 0.0, 10.0);
+    for _ in 0..200 {
+        let result = scene.step(&[0.0, -1.0]).clone();
+        assert!(
+            result.human_finished.is_empty(),
+            "{:?}",
+            result.human_finished
+        );
+        assert!(result.finished.is_empty());
+    }
+    let human = scene.vehicles().find(|v| v.human).unwrap();
+    let agent = scene.vehicles().find(|v| v.slot == Some(0)).unwrap();
+    let gap = (agent.position - human.position).length() - agent.length;
+    assert!(human.speed < 0.1, "still rolling at {} m/s", human.speed);
+    assert!(
+        (1.0..6.0).contains(&gap),
+        "IDM keeps about s0 = 2 m: gap {gap}"
+    );
+}
+
+#[test]
+fn human_drivers_flow_through_the_junction_apart_from_the_agents() {
+    let mut c = config(2);
+    c.humans.share = 0.75; // 6 humans beside 2 agents
+    let mut scene = Scene::new(&c, 7).unwrap();
+    assert_eq!(scene.slots(), 2);
+    assert_eq!(scene.vehicles().filter(|v| v.human).count(), 6);
+    let mut actions = vec![0.0; 2 * ACTION_DIM];
+    let mut outcomes: HashMap<Outcome, usize> = HashMap::new();
+    for _ in 0..3000 {
+        autopilot_actions(&scene, 8.0, &mut actions);
+        let result = scene.step(&actions).clone();
+        assert!(result.finished.iter().all(|e| e.slot < 2));
+        assert_eq!(result.rewards.len(), 2);
+        for e in &result.human_finished {
+            assert_eq!(e.total_reward, 0.0);
+            *outcomes.entry(e.outcome).or_default() += 1;
+        }
+        let (_, ids) = scene.neighbours();
+        assert!(
+            ids.iter().all(|&j| j < 2),
+            "human drivers are no one's neighbours"
+        );
+    }
+    // Timeouts come from the scene horizon (every 1000 steps), not from waiting.
+    let count = |o: Outcome| outcomes.get(&o).copied().unwrap_or(0);
+    let ended = outcomes.values().sum::<usize>() - count(Outcome::Timeout);
+    assert!(ended >= 40, "{outcomes:?}");
+    assert!(
+        count(Outcome::Success) as f64 >= 0.85 * ended as f64,
+        "human drivers mostly arrive: {outcomes:?}"
+    );
+    assert_eq!(count(Outcome::Timeout), 3 * 6, "only the horizon ends them");
+}
+
+#[test]
 fn respawn_keeps_the_flow_and_every_agent_ends_exactly_once() {
     let mut scene = Scene::new(&config(30), 4).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(9);
