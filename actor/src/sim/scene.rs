@@ -55,6 +55,9 @@ struct Obstacle {
 pub struct FinishedEpisode {
     pub slot: usize,
     pub stats: EpisodeStats,
+    /// The car's body when the episode ended: the car itself is gone by then (a renderer
+    /// marks where it arrived, crashed or left the road).
+    pub vehicle: VehicleView,
 }
 
 /// What one `step` produced, per slot (0 / false for slots that did not act).
@@ -78,6 +81,19 @@ pub struct VehicleView {
     pub width: f32,
     /// The agent slot, or None for a crashed car left as an obstacle.
     pub slot: Option<usize>,
+}
+
+impl VehicleView {
+    fn of(kin: &Kinematics, slot: Option<usize>) -> VehicleView {
+        VehicleView {
+            position: kin.position,
+            heading: kin.heading,
+            speed: kin.speed,
+            length: LENGTH,
+            width: WIDTH,
+            slot,
+        }
+    }
 }
 
 pub struct Scene {
@@ -202,21 +218,14 @@ impl Scene {
         self.cars.get(slot).and_then(Option::as_ref)
     }
 
+    /// Every body on the road: agents first (by slot), then crashed cars left as obstacles.
     pub fn vehicles(&self) -> impl Iterator<Item = VehicleView> + '_ {
-        let view = |kin: &Kinematics, slot| VehicleView {
-            position: kin.position,
-            heading: kin.heading,
-            speed: kin.speed,
-            length: LENGTH,
-            width: WIDTH,
-            slot,
-        };
         let cars = self
             .cars
             .iter()
             .enumerate()
-            .filter_map(move |(slot, c)| c.as_ref().map(|c| view(&c.kin, Some(slot))));
-        cars.chain(self.obstacles.iter().map(move |o| view(&o.kin, None)))
+            .filter_map(|(slot, c)| c.as_ref().map(|c| VehicleView::of(&c.kin, Some(slot))));
+        cars.chain(self.obstacles.iter().map(|o| VehicleView::of(&o.kin, None)))
     }
 
     /// Advances one decision step; see [`StepResult`].
@@ -308,6 +317,7 @@ impl Scene {
                         max_abs_accel: car.max_abs_accel,
                         collisions: car.collisions,
                     },
+                    vehicle: VehicleView::of(&car.kin, Some(slot)),
                 });
                 if outcome == Outcome::Crash && self.config.crash_obstacle_steps > 0 {
                     self.obstacles.push(Obstacle {
