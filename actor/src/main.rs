@@ -158,6 +158,14 @@ fn main() -> anyhow::Result<()> {
 
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let scenario = scenarios::load(&args.scenario)?;
+    if let Some(slot) = args.lidar {
+        anyhow::ensure!(
+            slot < scenario.agents,
+            "--lidar {slot}: scenario {:?} has agent slots 0..{}",
+            scenario.name,
+            scenario.agents
+        );
+    }
     let driver = match &args.checkpoint {
         Some(path) => {
             let file = replay::policy_file(path)?;

@@ -93,10 +93,8 @@ impl Frame {
     fn put(&mut self, x: usize, y: usize, colour: Rgba) {
         let i = 4 * (y * self.width + x);
         let alpha = u16::from(colour[3]);
-        for c in 0..3 {
-            let under = u16::from(self.pixels[i + c]);
-            self.pixels[i + c] =
-                ((u16::from(colour[c]) * alpha + under * (255 - alpha)) / 255) as u8;
+        for (out, &over) in self.pixels[i..i + 3].iter_mut().zip(&colour[..3]) {
+            *out = ((u16::from(over) * alpha + u16::from(*out) * (255 - alpha)) / 255) as u8;
         }
         self.pixels[i + 3] = 255;
     }
