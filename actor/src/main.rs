@@ -105,7 +105,8 @@ struct RenderArgs {
     /// Decision steps (0.1 s each) to simulate.
     #[arg(long, default_value_t = 200)]
     steps: u64,
-    /// Draw one frame every K decision steps (the GIF still plays in simulated time).
+    /// Draw one frame every K decision steps: the scene at steps 0, K, 2K, … up to --steps
+    /// (the GIF still plays in simulated time).
     #[arg(long, value_name = "K", default_value_t = 1,
           value_parser = clap::value_parser!(u64).range(1..))]
     every: u64,
@@ -156,6 +157,8 @@ fn main() -> anyhow::Result<()> {
     }
 }
 
+/// `actor render`: checks everything it can before creating the GIF, then streams the frames
+/// into it and prints one JSON line.
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let scenario = scenarios::load(&args.scenario)?;
     if let Some(slot) = args.lidar {
