@@ -7,11 +7,8 @@ use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
 use junction_common::spec::ACTION_DIM;
 
-use crate::sim::autopilot::autopilot_actions;
+use crate::sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
 use crate::sim::{Scene, SimError};
-
-/// Autopilot cruising speed: fast enough that unsupervised junction crossings produce crashes.
-const BENCH_SPEED_MPS: f32 = 10.0;
 
 #[derive(Debug, serde::Serialize)]
 pub struct BenchReport {
@@ -38,7 +35,7 @@ pub fn run(scenario: &ScenarioConfig, steps: u64, seed: u64) -> Result<BenchRepo
     let started = Instant::now();
     for _ in 0..steps {
         agent_steps += scene.alive().iter().filter(|a| **a).count() as u64;
-        autopilot_actions(&scene, BENCH_SPEED_MPS, &mut actions);
+        autopilot_actions(&scene, CRUISE_SPEED_MPS, &mut actions);
         let result = scene.step(&actions);
         collisions += u64::from(result.collisions);
         for episode in &result.finished {

@@ -4,5 +4,7 @@
 pub mod bench;
 pub mod grpc;
 pub mod metrics;
+pub mod render;
+pub mod replay;
 pub mod rollout;
 pub mod sim;

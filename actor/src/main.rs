@@ -1,6 +1,7 @@
 //! `actor`: simulates traffic scenes with the learner's current policy and streams the
 //! trajectories to it.
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -9,6 +10,7 @@ use clap::{Args, Parser, Subcommand};
 use tracing::Instrument;
 
 use junction_actor::metrics::ActorMetrics;
+use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
 use junction_actor::{bench, grpc};
 use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
@@ -34,6 +36,10 @@ struct Cli {
 enum Command {
     /// Time the simulator alone (scripted driving) and print one JSON line.
     Bench(BenchArgs),
+    /// Draw an episode of the simulator from above as an animated GIF (and PNG frames):
+    /// roads and lane markings, agents (blue), crashed cars left on the road (dark red), and
+    /// brief rings where cars arrive (green), crash (orange) or leave the road (magenta).
+    Render(RenderArgs),
 }
 
 #[derive(Args)]
@@ -83,6 +89,58 @@ struct BenchArgs {
     seed: u64,
 }
 
+#[derive(Args)]
+struct RenderArgs {
+    /// A shipped scenario name (intersection, tiny-straight) or a scenario TOML file.
+    #[arg(long, default_value = "intersection")]
+    scenario: String,
+    /// Drive every agent with this policy's mean action: a checkpoint directory
+    /// (runs/<run>/checkpoints/ckpt-N), a run directory (its newest checkpoint) or a
+    /// policy.safetensors file. Without it the scripted autopilot drives.
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
+    /// Scene seed.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Decision steps (0.1 s each) to simulate.
+    #[arg(long, default_value_t = 200)]
+    steps: u64,
+    /// Draw one frame every K decision steps: the scene at steps 0, K, 2K, … up to --steps
+    /// (the GIF still plays in simulated time).
+    #[arg(long, value_name = "K", default_value_t = 1,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    every: u64,
+    /// Frame size in pixels: N for N×N, or WxH.
+    #[arg(long, default_value = "640", value_parser = parse_size)]
+    size: (usize, usize),
+    /// Draw the lidar beams of the agent in this slot (slot 0 when given without a value);
+    /// that agent is drawn in cyan.
+    #[arg(long, value_name = "SLOT", num_args = 0..=1, default_missing_value = "0")]
+    lidar: Option<usize>,
+    /// Also write every frame as DIR/frame-<step>.png.
+    #[arg(long, value_name = "DIR")]
+    frames_dir: Option<PathBuf>,
+    /// The animated GIF to write.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+}
+
+/// Frames from 16 to 4096 pixels a side: GIF's own limit is 65535, but larger frames only
+/// make huge files.
+fn parse_size(text: &str) -> Result<(usize, usize), String> {
+    let parse = |t: &str| -> Result<usize, String> {
+        t.trim()
+            .parse::<usize>()
+            .ok()
+            .filter(|n| (16..=4096).contains(n))
+            .ok_or_else(|| format!("{t:?} is not a size from 16 to 4096 pixels"))
+    };
+    match text.split_once(['x', 'X']) {
+        Some((w, h)) => Ok((parse(w)?, parse(h)?)),
+        None => parse(text).map(|n| (n, n)),
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_format);
@@ -94,8 +152,62 @@ fn main() -> anyhow::Result<()> {
             println!("{}", serde_json::to_string(&report)?);
             Ok(())
         }
+        Some(Command::Render(args)) => render(args),
         None => run_actor(cli.run),
     }
+}
+
+/// `actor render`: checks everything it can before creating the GIF, then streams the frames
+/// into it and prints one JSON line.
+fn render(args: RenderArgs) -> anyhow::Result<()> {
+    let scenario = scenarios::load(&args.scenario)?;
+    if let Some(slot) = args.lidar {
+        anyhow::ensure!(
+            slot < scenario.agents,
+            "--lidar {slot}: scenario {:?} has agent slots 0..{}",
+            scenario.name,
+            scenario.agents
+        );
+    }
+    let driver = match &args.checkpoint {
+        Some(path) => {
+            let file = replay::policy_file(path)?;
+            let bytes =
+                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let policy = replay::load_policy(&bytes, &scenario)
+                .with_context(|| format!("loading the policy in {}", file.display()))?;
+            tracing::info!(policy = %file.display(), "driving with the policy's mean action");
+            Driver::Policy(policy)
+        }
+        None => Driver::Autopilot,
+    };
+    if let Some(dir) = &args.frames_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let (width, height) = args.size;
+    let frame_seconds = scenario.decision_dt * args.every as f32;
+    let mut gif = GifWriter::create(&args.out, width, height, frame_seconds)?;
+    let options = ReplayOptions {
+        seed: args.seed,
+        steps: args.steps,
+        every: args.every,
+        width,
+        height,
+        lidar_slot: args.lidar,
+    };
+    let summary = replay::run(&scenario, &driver, &options, |step, frame| {
+        gif.write(frame)?;
+        if let Some(dir) = &args.frames_dir {
+            replay::write_png(&dir.join(format!("frame-{step:06}.png")), frame)?;
+        }
+        Ok(())
+    })?;
+    gif.finish()
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let mut report = serde_json::to_value(&summary)?;
+    report["out"] = args.out.display().to_string().into();
+    println!("{report}");
+    Ok(())
 }
 
 fn run_actor(args: RunArgs) -> anyhow::Result<()> {

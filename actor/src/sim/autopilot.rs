@@ -14,6 +14,9 @@ use super::vehicle::{MAX_STEER_RAD, WHEELBASE};
 /// `FOLLOW_GAP` metres.
 const FRONT_CONE_RAD: f32 = 0.25;
 const FOLLOW_GAP: f32 = 8.0;
+/// Cruising speed of `actor bench` and `actor render`: fast enough that unsupervised junction
+/// crossings produce crashes.
+pub const CRUISE_SPEED_MPS: f32 = 10.0;
 /// Bends are taken at the speed that keeps lateral acceleration at this (m/s²).
 const COMFORT_LATERAL_ACCEL: f32 = 3.0;
 

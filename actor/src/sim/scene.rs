@@ -60,6 +60,9 @@ struct Obstacle {
 pub struct FinishedEpisode {
     pub slot: usize,
     pub stats: EpisodeStats,
+    /// The car's body when the episode ended: the car itself is gone by then (a renderer
+    /// marks where it arrived, crashed or left the road).
+    pub vehicle: VehicleView,
 }
 
 /// What one `step` produced, per slot (0 / false for slots that did not act).
@@ -86,6 +89,20 @@ pub struct VehicleView {
     /// The agent slot, or None for a crashed car left as an obstacle or a human driver.
     pub slot: Option<usize>,
     pub human: bool,
+}
+
+impl VehicleView {
+    fn of(kin: &Kinematics, slot: Option<usize>, human: bool) -> VehicleView {
+        VehicleView {
+            position: kin.position,
+            heading: kin.heading,
+            speed: kin.speed,
+            length: LENGTH,
+            width: WIDTH,
+            slot,
+            human,
+        }
+    }
 }
 
 pub struct Scene {
@@ -228,26 +245,19 @@ impl Scene {
         self.cars.get(slot).and_then(Option::as_ref)
     }
 
+    /// Every body on the road: agents first (by slot), human drivers, then crashed cars left
+    /// as obstacles.
     pub fn vehicles(&self) -> impl Iterator<Item = VehicleView> + '_ {
         let agents = self.agents;
-        let view = |kin: &Kinematics, slot: Option<usize>, human| VehicleView {
-            position: kin.position,
-            heading: kin.heading,
-            speed: kin.speed,
-            length: LENGTH,
-            width: WIDTH,
-            slot,
-            human,
-        };
         let cars = self.cars.iter().enumerate().filter_map(move |(i, c)| {
             let human = i >= agents;
             c.as_ref()
-                .map(|c| view(&c.kin, (!human).then_some(i), human))
+                .map(|c| VehicleView::of(&c.kin, (!human).then_some(i), human))
         });
         cars.chain(
             self.obstacles
                 .iter()
-                .map(move |o| view(&o.kin, None, false)),
+                .map(|o| VehicleView::of(&o.kin, None, false)),
         )
     }
 
@@ -359,7 +369,11 @@ impl Scene {
                     self.result.human_finished.push(stats);
                 } else {
                     self.result.dones[slot] = true;
-                    self.result.finished.push(FinishedEpisode { slot, stats });
+                    self.result.finished.push(FinishedEpisode {
+                        slot,
+                        stats,
+                        vehicle: VehicleView::of(&car.kin, Some(slot), false),
+                    });
                 }
                 if outcome == Outcome::Crash && self.config.crash_obstacle_steps > 0 {
                     self.obstacles.push(Obstacle {
