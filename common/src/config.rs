@@ -79,6 +79,7 @@ pub struct ScenarioConfig {
     pub decision_dt: f32,
     pub substeps: u32,
     pub intersection: IntersectionConfig,
+    pub roundabout: RoundaboutConfig,
     pub spawn: SpawnConfig,
     pub sensors: SensorConfig,
     pub reward: RewardConfig,
@@ -89,16 +90,36 @@ pub struct ScenarioConfig {
 #[serde(rename_all = "kebab-case")]
 pub enum SceneKind {
     Intersection,
+    Roundabout,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IntersectionConfig {
+    /// 4 (a cross) or 3 (a T-junction: the south arm is left out).
+    pub arms: usize,
     pub lanes_per_direction: usize,
     pub lane_width: f32,
     pub corner_radius: f32,
     pub approach_length: f32,
     pub routes: Vec<Manoeuvre>,
+}
+
+/// A roundabout: see `docs/SIMULATOR.md` for the geometry each key controls.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RoundaboutConfig {
+    /// Radius of the central island (the ring's inner edge), metres.
+    pub radius: f32,
+    pub ring_lanes: usize,
+    pub arms: usize,
+    pub lanes_per_direction: usize,
+    pub lane_width: f32,
+    /// Degrees the entry arcs turn through from the arm onto the ring.
+    pub entry_angle: f32,
+    /// Centre-line radius of the outermost lane's exit arc, metres.
+    pub exit_radius: f32,
+    pub approach_length: f32,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -335,13 +356,48 @@ impl ScenarioConfig {
         if i.routes.is_empty() {
             problems.push("scenario.intersection.routes must name at least one manoeuvre".into());
         }
+        if !(3..=4).contains(&i.arms) {
+            problems.push("scenario.intersection.arms must be 3 (a T-junction) or 4".into());
+        }
+        let ra = &self.roundabout;
+        if !(3..=5).contains(&ra.arms) {
+            problems.push("scenario.roundabout.arms must be 3, 4 or 5".into());
+        }
+        if !(1..=3).contains(&ra.lanes_per_direction) || !(1..=3).contains(&ra.ring_lanes) {
+            problems.push(
+                "scenario.roundabout.lanes_per_direction and ring_lanes must be 1, 2 or 3".into(),
+            );
+        }
+        if ra.ring_lanes < ra.lanes_per_direction {
+            problems.push(
+                "scenario.roundabout.ring_lanes must be >= lanes_per_direction (every arm lane \
+                 continues on its own ring lane)"
+                    .into(),
+            );
+        }
+        if !(ra.lane_width >= 2.5) || !(ra.radius >= 5.0) {
+            problems
+                .push("scenario.roundabout.lane_width must be >= 2.5 m and radius >= 5 m".into());
+        }
+        if !(ra.entry_angle > 0.0 && ra.entry_angle < 90.0) {
+            problems
+                .push("scenario.roundabout.entry_angle must lie strictly between 0 and 90°".into());
+        }
+        if !(ra.exit_radius >= ra.lane_width) {
+            problems.push(
+                "scenario.roundabout.exit_radius must be >= lane_width (the kerb needs a radius)"
+                    .into(),
+            );
+        }
         let s = &self.spawn;
         if !(s.slot_spacing >= 5.0) {
             problems.push("scenario.spawn.slot_spacing must be >= 5 m (a car is 4.5 m)".into());
         }
-        if !(i.approach_length >= s.slot_spacing) {
+        if !(i.approach_length >= s.slot_spacing) || !(ra.approach_length >= s.slot_spacing) {
             problems.push(
-                "scenario.intersection.approach_length must hold at least one spawn slot".into(),
+                "scenario.intersection.approach_length and scenario.roundabout.approach_length \
+                 must each hold at least one spawn slot"
+                    .into(),
             );
         }
         if !(s.initial_speed >= 0.0) {

@@ -13,6 +13,7 @@ pub mod lane;
 mod lidar;
 pub mod network;
 pub mod observation;
+pub mod roundabout;
 mod scene;
 pub mod vehicle;
 

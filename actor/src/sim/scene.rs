@@ -19,6 +19,7 @@ use super::intersection::Intersection;
 use super::lidar;
 use super::network::{Entry, RoadNetwork};
 use super::observation::{self, RoutePosition};
+use super::roundabout::Roundabout;
 use super::vehicle::{BOUNDING_RADIUS, Kinematics, LENGTH, MAX_SPEED, WIDTH};
 
 /// A destination counts as reached within this distance of its lane's end (MetaDrive: 5 m).
@@ -112,6 +113,7 @@ impl Scene {
             .map_err(|e| SimError::Config(e.to_string()))?;
         let network: Box<dyn RoadNetwork> = match config.kind {
             SceneKind::Intersection => Box::new(Intersection::new(&config.intersection)?),
+            SceneKind::Roundabout => Box::new(Roundabout::new(&config.roundabout)?),
         };
         let spacing = config.spawn.slot_spacing;
         let mut spawn_points = Vec::new();
