@@ -375,7 +375,7 @@ impl ScenarioConfig {
                     .into(),
             );
         }
-        if !(ra.lane_width >= 2.5) || !(ra.radius >= 5.0) {
+        if !(2.5..).contains(&ra.lane_width) || !(5.0..).contains(&ra.radius) {
             problems
                 .push("scenario.roundabout.lane_width must be >= 2.5 m and radius >= 5 m".into());
         }
@@ -383,7 +383,7 @@ impl ScenarioConfig {
             problems
                 .push("scenario.roundabout.entry_angle must lie strictly between 0 and 90°".into());
         }
-        if !(ra.exit_radius >= ra.lane_width) {
+        if !(ra.lane_width..).contains(&ra.exit_radius) {
             problems.push(
                 "scenario.roundabout.exit_radius must be >= lane_width (the kerb needs a radius)"
                     .into(),
@@ -393,7 +393,9 @@ impl ScenarioConfig {
         if !(s.slot_spacing >= 5.0) {
             problems.push("scenario.spawn.slot_spacing must be >= 5 m (a car is 4.5 m)".into());
         }
-        if !(i.approach_length >= s.slot_spacing) || !(ra.approach_length >= s.slot_spacing) {
+        let holds_a_slot = s.slot_spacing..;
+        if !holds_a_slot.contains(&i.approach_length) || !holds_a_slot.contains(&ra.approach_length)
+        {
             problems.push(
                 "scenario.intersection.approach_length and scenario.roundabout.approach_length \
                  must each hold at least one spawn slot"

@@ -112,14 +112,16 @@ impl Roundabout {
             config.lane_width,
         );
         let arm_count = config.arms;
-        if n == 0 || r < n || arm_count < 3 || !(w > 0.0) || !(config.radius > 0.0) {
+        // False for NaN too.
+        let positive = |x: f32| x > 0.0;
+        if n == 0 || r < n || arm_count < 3 || !positive(w) || !positive(config.radius) {
             return Err(SimError::Geometry(
                 "a roundabout needs 3 or more arms, lanes_per_direction > 0, ring_lanes >= \
                  lanes_per_direction, and a positive lane_width and radius"
                     .into(),
             ));
         }
-        if !(config.approach_length > 0.0) {
+        if !positive(config.approach_length) {
             return Err(SimError::Geometry(
                 "roundabout approach_length must be positive".into(),
             ));
@@ -157,7 +159,7 @@ impl Roundabout {
         }
         let spacing = TAU / arm_count as f32;
         let between_sweep = spacing - entry.beta - exit.beta;
-        if !(between_sweep > 0.0) {
+        if !positive(between_sweep) {
             return Err(SimError::Geometry(format!(
                 "the entry and exit arcs of {arm_count} arms overlap on a ring of radius {}: \
                  use fewer arms, a larger radius, a larger entry_angle or a smaller exit_radius",
