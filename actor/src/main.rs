@@ -78,7 +78,8 @@ struct RunArgs {
 
 #[derive(Args)]
 struct BenchArgs {
-    /// A shipped scenario name (intersection, tiny-straight) or a scenario TOML file.
+    /// A shipped scenario name (intersection, t-junction, roundabout, roundabout-compact-3arm,
+    /// roundabout-large-5arm, tiny-straight) or a scenario TOML file.
     #[arg(long, default_value = "intersection")]
     scenario: String,
     /// Scene steps to simulate.

@@ -80,6 +80,7 @@ pub struct ScenarioConfig {
     pub decision_dt: f32,
     pub substeps: u32,
     pub intersection: IntersectionConfig,
+    pub roundabout: RoundaboutConfig,
     pub spawn: SpawnConfig,
     pub humans: HumanConfig,
     pub sensors: SensorConfig,
@@ -96,7 +97,8 @@ pub enum Traffic {
     Custom,
     /// Half the reference agents; an empty slot refills with probability 0.05 per step.
     Light,
-    /// The reference agents (intersection 30); refills as soon as a spawn point is free.
+    /// The reference agents (intersection 30, roundabout 40); refills as soon as a spawn
+    /// point is free.
     Medium,
     /// One and a half times the reference agents; refills as soon as a spawn point is free.
     Heavy,
@@ -106,16 +108,36 @@ pub enum Traffic {
 #[serde(rename_all = "kebab-case")]
 pub enum SceneKind {
     Intersection,
+    Roundabout,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IntersectionConfig {
+    /// 4 (a cross) or 3 (a T-junction: the south arm is left out).
+    pub arms: usize,
     pub lanes_per_direction: usize,
     pub lane_width: f32,
     pub corner_radius: f32,
     pub approach_length: f32,
     pub routes: Vec<Manoeuvre>,
+}
+
+/// A roundabout: see `docs/SIMULATOR.md` for the geometry each key controls.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RoundaboutConfig {
+    /// Radius of the central island (the ring's inner edge), metres.
+    pub radius: f32,
+    pub ring_lanes: usize,
+    pub arms: usize,
+    pub lanes_per_direction: usize,
+    pub lane_width: f32,
+    /// Degrees the entry arcs turn through from the arm onto the ring.
+    pub entry_angle: f32,
+    /// Centre-line radius of the outermost lane's exit arc, metres.
+    pub exit_radius: f32,
+    pub approach_length: f32,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -347,6 +369,7 @@ impl SceneKind {
     pub fn reference_agents(self) -> usize {
         match self {
             SceneKind::Intersection => 30,
+            SceneKind::Roundabout => 40,
         }
     }
 }
@@ -417,13 +440,50 @@ impl ScenarioConfig {
         if i.routes.is_empty() {
             problems.push("scenario.intersection.routes must name at least one manoeuvre".into());
         }
+        if !(3..=4).contains(&i.arms) {
+            problems.push("scenario.intersection.arms must be 3 (a T-junction) or 4".into());
+        }
+        let ra = &self.roundabout;
+        if !(3..=5).contains(&ra.arms) {
+            problems.push("scenario.roundabout.arms must be 3, 4 or 5".into());
+        }
+        if !(1..=3).contains(&ra.lanes_per_direction) || !(1..=3).contains(&ra.ring_lanes) {
+            problems.push(
+                "scenario.roundabout.lanes_per_direction and ring_lanes must be 1, 2 or 3".into(),
+            );
+        }
+        if ra.ring_lanes < ra.lanes_per_direction {
+            problems.push(
+                "scenario.roundabout.ring_lanes must be >= lanes_per_direction (every arm lane \
+                 continues on its own ring lane)"
+                    .into(),
+            );
+        }
+        if !(2.5..).contains(&ra.lane_width) || !(5.0..).contains(&ra.radius) {
+            problems
+                .push("scenario.roundabout.lane_width must be >= 2.5 m and radius >= 5 m".into());
+        }
+        if !(ra.entry_angle > 0.0 && ra.entry_angle < 90.0) {
+            problems
+                .push("scenario.roundabout.entry_angle must lie strictly between 0 and 90°".into());
+        }
+        if !(ra.lane_width..).contains(&ra.exit_radius) {
+            problems.push(
+                "scenario.roundabout.exit_radius must be >= lane_width (the kerb needs a radius)"
+                    .into(),
+            );
+        }
         let s = &self.spawn;
         if !(s.slot_spacing >= 5.0) {
             problems.push("scenario.spawn.slot_spacing must be >= 5 m (a car is 4.5 m)".into());
         }
-        if !(i.approach_length >= s.slot_spacing) {
+        let holds_a_slot = s.slot_spacing..;
+        if !holds_a_slot.contains(&i.approach_length) || !holds_a_slot.contains(&ra.approach_length)
+        {
             problems.push(
-                "scenario.intersection.approach_length must hold at least one spawn slot".into(),
+                "scenario.intersection.approach_length and scenario.roundabout.approach_length \
+                 must each hold at least one spawn slot"
+                    .into(),
             );
         }
         let h = &self.humans;

@@ -12,6 +12,22 @@ pub const SHIPPED: &[(&str, &str)] = &[
         include_str!("../../scenarios/intersection.toml"),
     ),
     (
+        "roundabout",
+        include_str!("../../scenarios/roundabout.toml"),
+    ),
+    (
+        "roundabout-compact-3arm",
+        include_str!("../../scenarios/roundabout-compact-3arm.toml"),
+    ),
+    (
+        "roundabout-large-5arm",
+        include_str!("../../scenarios/roundabout-large-5arm.toml"),
+    ),
+    (
+        "t-junction",
+        include_str!("../../scenarios/t-junction.toml"),
+    ),
+    (
         "tiny-straight",
         include_str!("../../scenarios/tiny-straight.toml"),
     ),

@@ -7,6 +7,11 @@
 //! `H = n·w + corner_radius`; its corners are kerbs of radius `corner_radius`. Connectors
 //! inside the box: straight from every lane to the same lane opposite, left turns (quarter
 //! arcs) from lane 0 to lane 0, right turns from lane n−1 to lane n−1.
+//!
+//! With `arms = 3` it is a T-junction: the south arm (3) is left out, with every manoeuvre
+//! from or to it, and the box's south side is a straight kerb continuing the main road's edge.
+//! No U-turns: from lane 0 back into the outgoing lane 0 is a half circle of radius w/2
+//! (1.75 m), well under the car's 2.9 m minimum turning radius.
 
 use std::f32::consts::FRAC_PI_2;
 
@@ -26,6 +31,8 @@ pub struct Intersection {
     box_half: f32,
     corner_radius: f32,
     arm_end: f32,
+    /// A T-junction: no south arm.
+    tee: bool,
 }
 
 fn arm_direction(arm: usize) -> Vec2 {
@@ -49,7 +56,13 @@ impl Intersection {
         let mut lanes = Vec::new();
         let mut incoming = [[0usize; 3]; 4];
         let mut outgoing = [[0usize; 3]; 4];
-        for arm in 0..4 {
+        let arms = config.arms;
+        if !(3..=4).contains(&arms) {
+            return Err(SimError::Geometry(format!(
+                "an intersection has 3 or 4 arms, not {arms}"
+            )));
+        }
+        for arm in 0..arms {
             let (d, side) = (arm_direction(arm), arm_direction(arm).perp());
             for k in 0..n {
                 let (left, right) = (offset(k), road_half_width - offset(k));
@@ -73,7 +86,7 @@ impl Intersection {
         }
         let mut routes = Vec::new();
         let mut entries: Vec<Entry> = Vec::new();
-        for arm in 0..4 {
+        for arm in 0..arms {
             for k in 0..n {
                 let mut entry_routes = Vec::new();
                 for &manoeuvre in &config.routes {
@@ -83,6 +96,9 @@ impl Intersection {
                         Manoeuvre::Right if k == n - 1 => ((arm + 1) % 4, n - 1),
                         Manoeuvre::Left | Manoeuvre::Right => continue,
                     };
+                    if to_arm >= arms {
+                        continue;
+                    }
                     let from: LaneId = incoming[arm][k];
                     let to: LaneId = outgoing[to_arm][lane_k];
                     let (p, q) = (lanes[from].end(), lanes[to].start());
@@ -135,6 +151,7 @@ impl Intersection {
             box_half: h,
             corner_radius: config.corner_radius,
             arm_end: h + l,
+            tee: arms == 3,
         })
     }
 }
@@ -155,6 +172,10 @@ impl RoadNetwork for Intersection {
     fn on_road(&self, p: Vec2, heading: f32) -> bool {
         let (h, rc) = (self.box_half, self.corner_radius);
         let (ax, ay) = (p.x.abs(), p.y.abs());
+        if self.tee && p.y < -self.road_half_width {
+            // South of the main road: the T's straight kerb, no arm.
+            return false;
+        }
         if ax <= h && ay <= h {
             // Inside the junction box: everything but the rounded kerbs at its corners.
             let in_corner_zone = ax > h - rc && ay > h - rc;

@@ -15,6 +15,7 @@ mod lidar;
 pub mod network;
 pub mod observation;
 pub mod reward;
+pub mod roundabout;
 mod scene;
 pub mod vehicle;
 

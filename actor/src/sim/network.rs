@@ -1,5 +1,5 @@
 //! Road networks: lanes, the routes through them, where cars spawn, and where the road is.
-//! Every scene type (the intersection now; roundabouts and T-junctions later) implements
+//! Every scene type (the intersection or T-junction, the roundabout) implements
 //! [`RoadNetwork`]; the scene itself only talks to this trait.
 
 use parry2d::math::Vec2;

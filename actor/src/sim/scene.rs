@@ -23,6 +23,7 @@ use super::lidar;
 use super::network::{Entry, RoadNetwork};
 use super::observation::{self, RoutePosition};
 use super::reward::{self, StepFacts};
+use super::roundabout::Roundabout;
 use super::vehicle::{BOUNDING_RADIUS, Kinematics, LENGTH, WIDTH};
 
 /// A destination counts as reached within this distance of its lane's end (MetaDrive: 5 m).
@@ -143,6 +144,7 @@ impl Scene {
             .map_err(|e| SimError::Config(e.to_string()))?;
         let network: Box<dyn RoadNetwork> = match config.kind {
             SceneKind::Intersection => Box::new(Intersection::new(&config.intersection)?),
+            SceneKind::Roundabout => Box::new(Roundabout::new(&config.roundabout)?),
         };
         let spacing = config.spawn.slot_spacing;
         let mut spawn_points = Vec::new();

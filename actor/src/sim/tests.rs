@@ -1,6 +1,7 @@
 //! Scene-level tests: collisions, leaving the road, arrival, respawn, determinism, bounds.
 
 use std::collections::HashMap;
+use std::f32::consts::FRAC_PI_2;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -482,4 +483,244 @@ fn neighbourhoods_are_symmetric_and_within_the_radius() {
         }
     }
     assert!(total > 0);
+}
+
+// ---- Shipped layouts: roundabouts and the T-junction -------------------------------------
+
+/// Every shipped road layout besides the plain intersection (covered above).
+const LAYOUTS: [&str; 4] = [
+    "roundabout",
+    "roundabout-compact-3arm",
+    "roundabout-large-5arm",
+    "t-junction",
+];
+
+fn shipped(name: &str) -> ScenarioConfig {
+    junction_common::scenarios::load(name).unwrap()
+}
+
+fn with_agents(name: &str, agents: usize) -> ScenarioConfig {
+    ScenarioConfig {
+        agents,
+        ..shipped(name)
+    }
+}
+
+#[test]
+fn every_route_of_every_layout_is_continuous() {
+    for name in LAYOUTS {
+        let scene = Scene::new(&shipped(name), 1).unwrap();
+        let lanes = scene.network().lanes();
+        assert!(!scene.network().routes().is_empty(), "{name}");
+        for route in scene.network().routes() {
+            for pair in route.lanes.windows(2) {
+                let (a, b) = (&lanes[pair[0]], &lanes[pair[1]]);
+                let gap = (a.end() - b.start()).length();
+                assert!(gap < 0.01, "{name}: gap of {gap} m in {route:?}");
+                let kink = super::angle::wrap(a.heading(a.length()) - b.heading(0.0));
+                assert!(
+                    kink.abs() < 1f32.to_radians(),
+                    "{name}: kink of {kink} rad in {route:?}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn lane_centres_are_on_the_road_and_the_island_and_beyond_are_not() {
+    for name in LAYOUTS {
+        let scene = Scene::new(&shipped(name), 1).unwrap();
+        let net = scene.network();
+        for (id, lane) in net.lanes().iter().enumerate() {
+            let steps = (lane.length() / 0.5).ceil() as usize;
+            for i in 0..=steps {
+                let s = lane.length() * i as f32 / steps as f32;
+                let across = parry2d::math::Vec2::from_angle(lane.heading(s)).perp();
+                for lateral in [-0.4 * lane.width, 0.0, 0.4 * lane.width] {
+                    let p = lane.point(s) + across * lateral;
+                    assert!(
+                        net.on_road(p, lane.heading(s)),
+                        "{name}: lane {id} at s = {s}, lateral {lateral}: {p:?} is off the road"
+                    );
+                }
+            }
+        }
+    }
+    use parry2d::math::Vec2;
+    for name in [
+        "roundabout",
+        "roundabout-compact-3arm",
+        "roundabout-large-5arm",
+    ] {
+        let config = shipped(name).roundabout;
+        let scene = Scene::new(&shipped(name), 1).unwrap();
+        let net = scene.network();
+        let outer = config.radius + config.ring_lanes as f32 * config.lane_width;
+        let spacing = std::f32::consts::TAU / config.arms as f32;
+        for heading in [0.0, 1.0, -2.0] {
+            assert!(!net.on_road(Vec2::ZERO, heading), "{name}: ring centre");
+            for a in 0..config.arms {
+                let mid = Vec2::from_angle((a as f32 + 0.5) * spacing);
+                assert!(
+                    !net.on_road(mid * (config.radius - 0.5), heading),
+                    "{name}: island edge"
+                );
+                assert!(net.on_road(mid * (outer - 0.5), heading), "{name}: ring");
+                assert!(
+                    !net.on_road(mid * (outer + 0.5), heading),
+                    "{name}: just beyond the outer edge between arms"
+                );
+                assert!(
+                    !net.on_road(mid * (outer + 30.0), heading),
+                    "{name}: well beyond the outer edge"
+                );
+            }
+        }
+        // Beyond the end of arm 0 (east), on its inbound side.
+        assert!(!net.on_road(Vec2::new(500.0, 2.0), std::f32::consts::PI));
+    }
+}
+
+#[test]
+fn the_t_junction_has_no_south_arm() {
+    use parry2d::math::Vec2;
+    let tee = Scene::new(&shipped("t-junction"), 1).unwrap();
+    let cross = Scene::new(&config(1), 1).unwrap();
+    // East and west: 2 lanes, 3 routes; north: 2 lanes, one turn each.
+    assert_eq!(tee.network().routes().len(), 8);
+    assert_eq!(tee.network().entries().len(), 6);
+    let south_of_the_main_road = Vec2::new(0.0, -10.0);
+    assert!(cross.network().on_road(south_of_the_main_road, 0.0));
+    assert!(!tee.network().on_road(south_of_the_main_road, 0.0));
+    assert!(!tee.network().on_road(Vec2::new(2.0, -40.0), FRAC_PI_2));
+    assert!(tee.network().on_road(Vec2::new(-2.0, 40.0), -FRAC_PI_2));
+    for route in tee.network().routes() {
+        for &lane in &route.lanes {
+            let lane = &tee.network().lanes()[lane];
+            assert!(
+                lane.start().y > -7.01 && lane.end().y > -7.01,
+                "no lane leads south"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_autopilot_arrives_on_every_route_of_every_layout() {
+    for name in LAYOUTS {
+        let mut collision_only = with_agents(name, 1);
+        collision_only.cost.energy = 0.0;
+        let mut scene = Scene::new(&collision_only, 3).unwrap();
+        for route in 0..scene.network().routes().len() {
+            scene.clear();
+            scene.place(0, route, 5.0, 0.0, 0.0, 0.0);
+            let (outcome, reward, cost) = run_until_done(
+                &mut scene,
+                0,
+                |s| {
+                    let mut a = vec![0.0; s.slots() * ACTION_DIM];
+                    autopilot_actions(s, 8.0, &mut a);
+                    a
+                },
+                1000,
+            );
+            assert_eq!(outcome, Outcome::Success, "{name}: route {route}");
+            assert_eq!((reward, cost), (scene.config().reward.success, 0.0));
+        }
+    }
+}
+
+#[test]
+fn cutting_across_the_island_or_off_the_ring_is_out_of_road() {
+    let mut scene = Scene::new(&with_agents("roundabout", 1), 2).unwrap();
+    // Route 0 enters from the east and leaves at the next arm; on the ring, full left lock
+    // heads for the island and full right lock over the outer edge.
+    let route = 0;
+    let on_ring = {
+        let r = &scene.network().routes()[route];
+        r.offsets[2] + 5.0
+    };
+    for steer in [-1.0, 1.0] {
+        scene.clear();
+        scene.place(0, route, on_ring, 0.0, 0.0, 8.0);
+        let (outcome, reward, _) = run_until_done(&mut scene, 0, |_| vec![steer, 0.3], 100);
+        assert_eq!(outcome, Outcome::OutOfRoad, "steer {steer}");
+        assert_eq!(reward, scene.config().reward.out_of_road);
+    }
+}
+
+#[test]
+fn roundabouts_keep_their_agent_count_under_respawn() {
+    for name in [
+        "roundabout",
+        "roundabout-compact-3arm",
+        "roundabout-large-5arm",
+    ] {
+        let config = shipped(name);
+        let agents = config.agents;
+        let mut scene = Scene::new(&config, 4).unwrap();
+        assert_eq!(scene.alive().iter().filter(|a| **a).count(), agents);
+        let mut actions = vec![0.0; agents * ACTION_DIM];
+        let (mut ended, mut alive_sum) = (0usize, 0usize);
+        let steps = 600;
+        for _ in 0..steps {
+            autopilot_actions(&scene, 8.0, &mut actions);
+            ended += scene.step(&actions).finished.len();
+            let alive = scene.alive().iter().filter(|a| **a).count();
+            assert!(alive <= agents, "{name}");
+            alive_sum += alive;
+        }
+        assert!(ended >= agents / 2, "{name}: a real flow, {ended} ended");
+        let mean_alive = alive_sum as f32 / steps as f32;
+        assert!(
+            mean_alive >= 0.9 * agents as f32,
+            "{name}: respawn refills the slots, mean alive {mean_alive} of {agents}"
+        );
+    }
+}
+
+#[test]
+fn roundabout_same_seed_same_trajectories() {
+    let run = |seed: u64| {
+        let mut scene = Scene::new(&shipped("roundabout"), seed).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
+        let mut trace = Vec::new();
+        for _ in 0..300 {
+            autopilot_actions(&scene, 9.0, &mut actions);
+            for a in actions.iter_mut() {
+                *a += rng.gen_range(-0.2..0.2);
+            }
+            trace.extend(
+                scene
+                    .vehicles()
+                    .flat_map(|v| [v.position.x, v.position.y, v.heading]),
+            );
+            let r = scene.step(&actions);
+            trace.extend_from_slice(&r.rewards);
+        }
+        trace
+    };
+    let a = run(11);
+    assert_eq!(a, run(11));
+    assert_ne!(a, run(12));
+}
+
+#[test]
+fn impossible_roundabouts_are_geometry_errors() {
+    let mut tight = shipped("roundabout-compact-3arm");
+    tight.roundabout.entry_angle = 85.0;
+    assert!(matches!(Scene::new(&tight, 1), Err(SimError::Geometry(_))));
+    let mut crowded = shipped("roundabout-compact-3arm");
+    crowded.roundabout.arms = 5;
+    crowded.roundabout.radius = 6.0;
+    crowded.roundabout.entry_angle = 20.0;
+    assert!(matches!(
+        Scene::new(&crowded, 1),
+        Err(SimError::Geometry(_) | SimError::Config(_))
+    ));
+    let mut config = shipped("roundabout");
+    config.roundabout.ring_lanes = 1;
+    assert!(matches!(Scene::new(&config, 1), Err(SimError::Config(_))));
 }
