@@ -37,7 +37,8 @@ enum Command {
     /// Time the simulator alone (scripted driving) and print one JSON line.
     Bench(BenchArgs),
     /// Draw an episode of the simulator from above as an animated GIF (and PNG frames):
-    /// roads and lane markings, agents (blue), crashed cars left on the road (dark red), and
+    /// roads and lane markings, agents (blue), human drivers (light grey), crashed cars left on
+    /// the road (dark red), and
     /// brief rings where cars arrive (green), crash (orange) or leave the road (magenta).
     Render(RenderArgs),
 }
@@ -92,7 +93,8 @@ struct BenchArgs {
 
 #[derive(Args)]
 struct RenderArgs {
-    /// A shipped scenario name (intersection, tiny-straight) or a scenario TOML file.
+    /// A shipped scenario name (intersection, t-junction, roundabout, roundabout-compact-3arm,
+    /// roundabout-large-5arm, tiny-straight) or a scenario TOML file.
     #[arg(long, default_value = "intersection")]
     scenario: String,
     /// Drive every agent with this policy's mean action: a checkpoint directory

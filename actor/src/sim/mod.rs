@@ -28,9 +28,13 @@ pub enum SimError {
     #[error("invalid road geometry: {0}")]
     Geometry(String),
     #[error(
-        "scenario.agents = {agents} exceeds the {spawn_points} spawn points of this road layout"
+        "{agents} agents and {humans} human drivers exceed the {spawn_points} spawn points of this road layout (scenario.agents / traffic / humans.share)"
     )]
-    TooManyAgents { agents: usize, spawn_points: usize },
+    TooManyAgents {
+        agents: usize,
+        humans: usize,
+        spawn_points: usize,
+    },
 }
 
 #[cfg(test)]

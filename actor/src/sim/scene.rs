@@ -159,7 +159,8 @@ impl Scene {
         let vehicles = config.agent_count() + config.human_count();
         if vehicles > spawn_points.len() {
             return Err(SimError::TooManyAgents {
-                agents: vehicles,
+                agents: config.agent_count(),
+                humans: config.human_count(),
                 spawn_points: spawn_points.len(),
             });
         }

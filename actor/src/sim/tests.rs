@@ -437,6 +437,18 @@ fn more_agents_than_spawn_points_is_an_error() {
         matches!(err, SimError::TooManyAgents { agents: 500, .. }),
         "{err}"
     );
+    // Human drivers need spawn points too: 45 agents fit the 56, 45 + 15 humans do not.
+    let mut crowded = config(45);
+    crowded.humans.share = 0.25;
+    let err = Scene::new(&crowded, 1).err().expect("too many vehicles");
+    assert_eq!(
+        err,
+        SimError::TooManyAgents {
+            agents: 45,
+            humans: 15,
+            spawn_points: 56
+        }
+    );
 }
 
 #[test]
