@@ -146,6 +146,10 @@ pub enum Manoeuvre {
     Straight,
     Left,
     Right,
+    /// A half circle from the innermost incoming lane to the outermost outgoing lane of the
+    /// same arm; needs 2 or more lanes per direction (1 lane is too tight for the car).
+    #[serde(rename = "uturn")]
+    UTurn,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

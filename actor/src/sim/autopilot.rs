@@ -30,15 +30,19 @@ pub fn route_point(network: &dyn RoadNetwork, route: &Route, progress: f32) -> V
     network.lanes()[route.lanes[i]].point(progress - route.offsets[i])
 }
 
-/// The speed (m/s) at which the bends of this lane and the next keep lateral acceleration
-/// comfortable; infinite on straight road.
-pub fn bend_speed(network: &dyn RoadNetwork, route: &Route, lane_index: usize) -> f32 {
+/// The smallest bend radius (m) of this lane and the next; infinite on straight road.
+fn tightest_bend(network: &dyn RoadNetwork, route: &Route, lane_index: usize) -> f32 {
     route.lanes[lane_index..route.lanes.len().min(lane_index + 2)]
         .iter()
         .map(|&l| network.lanes()[l].bend().0.abs())
         .filter(|&r| r > 0.0)
-        .map(|r| (COMFORT_LATERAL_ACCEL * r).sqrt())
         .fold(f32::INFINITY, f32::min)
+}
+
+/// The speed (m/s) at which the bends of this lane and the next keep lateral acceleration
+/// comfortable; infinite on straight road.
+pub fn bend_speed(network: &dyn RoadNetwork, route: &Route, lane_index: usize) -> f32 {
+    (COMFORT_LATERAL_ACCEL * tightest_bend(network, route, lane_index)).sqrt()
 }
 
 /// Writes `[steer, throttle_brake]` for every alive slot into `out` (zeros elsewhere).
@@ -52,7 +56,9 @@ pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) 
     for slot in 0..scene.slots() {
         let Some(car) = scene.car(slot) else { continue };
         let route = &scene.network().routes()[car.route];
-        let lookahead = 4.0 + 0.8 * car.kin.speed;
+        // Shorter look-ahead in tight bends, so pure pursuit does not cut them.
+        let lookahead = (4.0 + 0.8 * car.kin.speed)
+            .min(tightest_bend(scene.network(), route, car.lane_index).max(2.0));
         let target = route_point(scene.network(), route, car.progress + lookahead);
         let forward = Vec2::from_angle(car.kin.heading);
         let rel = target - car.kin.position;

@@ -6,14 +6,15 @@
 //! lanes on the `+n_a` side, outgoing on the `−n_a` side. The junction box has half-size
 //! `H = n·w + corner_radius`; its corners are kerbs of radius `corner_radius`. Connectors
 //! inside the box: straight from every lane to the same lane opposite, left turns (quarter
-//! arcs) from lane 0 to lane 0, right turns from lane n−1 to lane n−1.
+//! arcs) from lane 0 to lane 0, right turns from lane n−1 to lane n−1, U-turns (half circles)
+//! from lane 0 to the outgoing lane n−1 of the same arm.
 //!
 //! With `arms = 3` it is a T-junction: the south arm (3) is left out, with every manoeuvre
 //! from or to it, and the box's south side is a straight kerb continuing the main road's edge.
 //! No U-turns: from lane 0 back into the outgoing lane 0 is a half circle of radius w/2
 //! (1.75 m), well under the car's 2.9 m minimum turning radius.
 
-use std::f32::consts::FRAC_PI_2;
+use std::f32::consts::{FRAC_PI_2, PI};
 
 use parry2d::math::Vec2;
 
@@ -22,6 +23,10 @@ use junction_common::config::{IntersectionConfig, Manoeuvre};
 use super::SimError;
 use super::lane::Lane;
 use super::network::{Entry, LaneId, RoadNetwork, Route};
+
+/// The car turns no tighter than wheelbase / tan(40°) ≈ 2.9 m: U-turn arcs tighter than this
+/// are left out (1 lane per direction: 1.75 m; 2 lanes: 3.5 m, which the autopilot drives).
+const MIN_UTURN_RADIUS: f32 = 3.0;
 
 pub struct Intersection {
     lanes: Vec<Lane>,
@@ -84,6 +89,7 @@ impl Intersection {
                 ));
             }
         }
+        let uturn_radius = (offset(0) + offset(n - 1)) / 2.0;
         let mut routes = Vec::new();
         let mut entries: Vec<Entry> = Vec::new();
         for arm in 0..arms {
@@ -94,7 +100,10 @@ impl Intersection {
                         Manoeuvre::Straight => ((arm + 2) % 4, k),
                         Manoeuvre::Left if k == 0 => ((arm + 3) % 4, 0),
                         Manoeuvre::Right if k == n - 1 => ((arm + 1) % 4, n - 1),
-                        Manoeuvre::Left | Manoeuvre::Right => continue,
+                        Manoeuvre::UTurn if k == 0 && uturn_radius >= MIN_UTURN_RADIUS => {
+                            (arm, n - 1)
+                        }
+                        Manoeuvre::Left | Manoeuvre::Right | Manoeuvre::UTurn => continue,
                     };
                     if to_arm >= arms {
                         continue;
@@ -105,6 +114,12 @@ impl Intersection {
                     let (left, right) = (lanes[from].left_edge, lanes[from].right_edge);
                     let connector = match manoeuvre {
                         Manoeuvre::Straight => Lane::straight(p, q, w, left, right),
+                        Manoeuvre::UTurn => {
+                            // Half circle turning left, bulging into the junction box.
+                            let centre = (p + q) / 2.0;
+                            let start = (p - centre).to_angle();
+                            Lane::arc(centre, uturn_radius, start, PI, w, left, right)
+                        }
                         Manoeuvre::Left | Manoeuvre::Right => {
                             // Quarter arc about the box corner between the two arms.
                             let centre = (arm_direction(arm) + arm_direction(to_arm)) * h;

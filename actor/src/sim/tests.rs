@@ -6,7 +6,9 @@ use std::f32::consts::FRAC_PI_2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::{ScenarioConfig, Traffic};
+use std::f32::consts::PI;
+
+use junction_common::config::{Manoeuvre, ScenarioConfig, Traffic};
 use junction_common::fragment::Outcome;
 use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
@@ -150,6 +152,47 @@ fn leaving_the_road_and_crossing_the_centre_line_end_out_of_road() {
     scene.place(0, route, 10.0, 0.0, 0.0, 8.0);
     let (outcome, _, _) = run_until_done(&mut scene, 0, |_| vec![-1.0, 0.5], 100);
     assert_eq!(outcome, Outcome::OutOfRoad);
+}
+
+#[test]
+fn u_turns_lead_back_out_of_the_arm_they_came_from() {
+    let mut c = config(1);
+    c.intersection.routes = vec![Manoeuvre::UTurn];
+    let mut scene = Scene::new(&c, 3).unwrap();
+    let network = scene.network();
+    assert_eq!(network.routes().len(), 4, "one U-turn per arm");
+    for route in network.routes() {
+        let (first, last) = (
+            &network.lanes()[route.lanes[0]],
+            &network.lanes()[route.lanes[2]],
+        );
+        // Back out along the arm it came in on: opposite heading, same side of the junction.
+        assert!((angle_between(first.heading(0.0), last.heading(0.0)) - PI).abs() < 1e-3);
+        assert!(first.start().dot(last.end()) > 0.0);
+    }
+    for route in 0..4 {
+        scene.clear();
+        scene.place(0, route, 5.0, 0.0, 0.0, 0.0);
+        let (outcome, _, _) = run_until_done(
+            &mut scene,
+            0,
+            |s| {
+                let mut a = vec![0.0; s.slots() * ACTION_DIM];
+                autopilot_actions(s, 8.0, &mut a);
+                a
+            },
+            600,
+        );
+        assert_eq!(outcome, Outcome::Success, "U-turn route {route}");
+    }
+    // One lane per direction is too tight for the car to turn round: no U-turn routes, so
+    // an error here.
+    c.intersection.lanes_per_direction = 1;
+    assert!(matches!(Scene::new(&c, 3), Err(SimError::Geometry(_))));
+}
+
+fn angle_between(a: f32, b: f32) -> f32 {
+    super::angle::wrap(a - b).abs()
 }
 
 #[test]
