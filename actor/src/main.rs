@@ -79,8 +79,9 @@ struct RunArgs {
 
 #[derive(Args)]
 struct BenchArgs {
-    /// A shipped scenario name (intersection, t-junction, roundabout, roundabout-compact-3arm,
-    /// roundabout-large-5arm, tiny-straight) or a scenario TOML file.
+    /// A shipped scenario name (intersection, intersection-metadrive, t-junction,
+    /// roundabout, roundabout-metadrive, roundabout-compact-3arm, roundabout-large-5arm,
+    /// tiny-straight) or a scenario TOML file.
     #[arg(long, default_value = "intersection")]
     scenario: String,
     /// Scene steps to simulate.
@@ -93,8 +94,9 @@ struct BenchArgs {
 
 #[derive(Args)]
 struct RenderArgs {
-    /// A shipped scenario name (intersection, t-junction, roundabout, roundabout-compact-3arm,
-    /// roundabout-large-5arm, tiny-straight) or a scenario TOML file.
+    /// A shipped scenario name (intersection, intersection-metadrive, t-junction,
+    /// roundabout, roundabout-metadrive, roundabout-compact-3arm, roundabout-large-5arm,
+    /// tiny-straight) or a scenario TOML file.
     #[arg(long, default_value = "intersection")]
     scenario: String,
     /// Drive every agent with this policy's mean action: a checkpoint directory

@@ -12,8 +12,16 @@ pub const SHIPPED: &[(&str, &str)] = &[
         include_str!("../../scenarios/intersection.toml"),
     ),
     (
+        "intersection-metadrive",
+        include_str!("../../scenarios/intersection-metadrive.toml"),
+    ),
+    (
         "roundabout",
         include_str!("../../scenarios/roundabout.toml"),
+    ),
+    (
+        "roundabout-metadrive",
+        include_str!("../../scenarios/roundabout-metadrive.toml"),
     ),
     (
         "roundabout-compact-3arm",

@@ -51,8 +51,10 @@ struct ConfigSource {
     /// defaults (`learner config --defaults`), or the run's config.toml when resuming.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Scenario to train on: a shipped one (intersection, t-junction, roundabout,
-    /// roundabout-compact-3arm, roundabout-large-5arm, tiny-straight) or a scenario TOML file; replaces the [scenario] keys it sets (applied after --config, before --set).
+    /// Scenario to train on: a shipped one (intersection, intersection-metadrive, t-junction,
+    /// roundabout, roundabout-metadrive, roundabout-compact-3arm, roundabout-large-5arm,
+    /// tiny-straight) or a scenario TOML file; replaces the [scenario] keys it sets (applied
+    /// after --config, before --set).
     #[arg(long, value_name = "NAME|FILE")]
     scenario: Option<String>,
     /// Override one config key, e.g. --set ppo.learning_rate=1e-4 (repeatable; applied after

@@ -543,11 +543,13 @@ fn neighbourhoods_are_symmetric_and_within_the_radius() {
 // ---- Shipped layouts: roundabouts and the T-junction -------------------------------------
 
 /// Every shipped road layout besides the plain intersection (covered above).
-const LAYOUTS: [&str; 4] = [
+const LAYOUTS: [&str; 6] = [
     "roundabout",
     "roundabout-compact-3arm",
     "roundabout-large-5arm",
+    "roundabout-metadrive",
     "t-junction",
+    "intersection-metadrive",
 ];
 
 fn shipped(name: &str) -> ScenarioConfig {
