@@ -2,6 +2,7 @@
 //! checkpoints, weight broadcast and the metrics endpoint.
 
 pub mod algo;
+pub mod bench;
 pub mod checkpoint;
 pub mod metrics;
 pub mod optim;

@@ -43,6 +43,25 @@ enum Command {
     Serve(ServeArgs),
     /// Print the effective configuration as TOML (or, with --defaults, the annotated defaults).
     Config(ConfigArgs),
+    /// Time the training update alone on synthetic fragments of the run's shape (scenario
+    /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update) and print one
+    /// JSON line with samples_per_s.
+    Bench(BenchArgs),
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    #[command(flatten)]
+    source: ConfigSource,
+    /// Algorithm to time (ippo; the others come with their implementations).
+    #[arg(long, default_value = "ippo")]
+    algo: String,
+    /// Timed updates (after one untimed warm-up update).
+    #[arg(long, default_value_t = 5)]
+    updates: usize,
+    /// cpu, cuda or auto [config: learner.device].
+    #[arg(long, value_name = "DEVICE")]
+    device: Option<String>,
 }
 
 #[derive(Args)]
@@ -132,6 +151,7 @@ fn main() -> anyhow::Result<()> {
             }
             Ok(())
         }
+        Command::Bench(args) => bench(args),
         Command::Serve(args) => {
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)
@@ -141,6 +161,38 @@ fn main() -> anyhow::Result<()> {
             runtime.block_on(serve(args))
         }
     }
+}
+
+fn bench(args: BenchArgs) -> anyhow::Result<()> {
+    let device_flag = args
+        .device
+        .as_ref()
+        .map(|d| format!("learner.device={d:?}"));
+    let config = args.source.load(None, device_flag.as_slice())?;
+    if args.algo != "ippo" {
+        bail!("unknown --algo {:?} (available: ippo)", args.algo);
+    }
+    if config.learner.torch_threads > 0 {
+        tch::set_num_threads(config.learner.torch_threads as i32);
+    }
+    tch::manual_seed(config.run.seed as i64);
+    let device = resolve_device(config.learner.device);
+    let mut algorithm = Ippo::new(
+        &config.ppo,
+        config.scenario.obs_dim(),
+        ACTION_DIM,
+        device,
+        config.run.seed,
+    );
+    let report = junction_learner::bench::run(
+        &config,
+        &mut algorithm,
+        format!("{device:?}"),
+        args.updates.max(1),
+    )
+    .context("timing the update")?;
+    println!("{}", serde_json::to_string(&report)?);
+    Ok(())
 }
 
 fn resolve_device(choice: DeviceChoice) -> tch::Device {

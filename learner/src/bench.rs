@@ -1,0 +1,129 @@
+//! `learner bench`: the training update alone, timed on synthetic fragments of the run's shape
+//! (random observations, actions and log-probabilities from the current policy, random
+//! rewards), so the figure isolates the optimiser from simulation and transport.
+
+use std::time::Instant;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+use junction_common::config::RunConfig;
+use junction_common::fragment::RolloutFragment;
+use junction_common::lcf;
+use junction_common::spec::ACTION_DIM;
+
+use crate::algo::{AlgoError, Algorithm};
+
+#[derive(Debug, serde::Serialize)]
+pub struct BenchReport {
+    pub bench: &'static str,
+    pub algo: &'static str,
+    pub device: String,
+    pub updates: usize,
+    pub agent_steps_per_update: usize,
+    pub epochs: usize,
+    pub seconds: f64,
+    /// Agent-steps through gradient steps per second (each counted once per epoch).
+    pub samples_per_s: f64,
+    /// Agent-steps of rollout consumed per second of updating.
+    pub agent_steps_per_s: f64,
+}
+
+/// One training batch: enough fragments of every agent alive for `train_batch_env_steps`.
+pub fn synthetic_batch(
+    config: &RunConfig,
+    algorithm: &dyn Algorithm,
+    seed: u64,
+) -> Result<Vec<RolloutFragment>, AlgoError> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (steps, agents) = (
+        config.rollout.fragment_length,
+        config.scenario.agent_count(),
+    );
+    let obs_dim = config.scenario.obs_dim();
+    let cells = steps * agents;
+    let fragments = config.ppo.train_batch_env_steps.div_ceil(steps);
+    (0..fragments)
+        .map(|_| {
+            let obs: Vec<f32> = (0..cells * obs_dim).map(|_| rng.r#gen::<f32>()).collect();
+            let noise: Vec<f32> = (0..cells * ACTION_DIM)
+                .map(|_| rng.sample(StandardNormal))
+                .collect();
+            let (actions, log_probs) = algorithm.policy().act(&obs, &noise)?;
+            Ok(RolloutFragment {
+                scenario: config.scenario.name.clone(),
+                steps,
+                agents,
+                obs_dim,
+                action_dim: ACTION_DIM,
+                obs,
+                actions,
+                log_probs,
+                rewards: (0..cells).map(|_| rng.gen_range(-1.0..2.0)).collect(),
+                costs: vec![0.0; cells],
+                dones: vec![false; cells],
+                alive: vec![true; cells],
+                bootstrap_obs: (0..agents * obs_dim).map(|_| rng.r#gen::<f32>()).collect(),
+                neighbour_offsets: vec![0; cells + 1],
+                lcf_features: vec![0.0; cells * lcf::FEATURES],
+                ..RolloutFragment::default()
+            })
+        })
+        .collect()
+}
+
+/// Times `updates` updates of `algorithm` on one synthetic batch.
+pub fn run(
+    config: &RunConfig,
+    algorithm: &mut dyn Algorithm,
+    device: String,
+    updates: usize,
+) -> Result<BenchReport, AlgoError> {
+    let batch = synthetic_batch(config, algorithm, config.run.seed)?;
+    // One untimed update: allocations and lazy initialisation.
+    algorithm.update(&batch)?;
+    let started = Instant::now();
+    let (mut samples, mut agent_steps) = (0usize, 0usize);
+    for _ in 0..updates {
+        let stats = algorithm.update(&batch)?;
+        samples += stats.samples_trained;
+        agent_steps += stats.agent_steps;
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    Ok(BenchReport {
+        bench: "learner_update",
+        algo: algorithm.name(),
+        device,
+        updates,
+        agent_steps_per_update: agent_steps / updates.max(1),
+        epochs: config.ppo.epochs,
+        seconds,
+        samples_per_s: samples as f64 / seconds,
+        agent_steps_per_s: agent_steps as f64 / seconds,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::ippo::Ippo;
+    use tch::Device;
+
+    #[test]
+    fn the_synthetic_batch_is_a_valid_training_batch_of_the_run_shape() {
+        let mut config = RunConfig::default();
+        config.ppo.hidden = vec![8];
+        config.scenario.agents = 3;
+        config.rollout.fragment_length = 10;
+        config.ppo.train_batch_env_steps = 25;
+        let ippo = Ippo::new(&config.ppo, config.scenario.obs_dim(), 2, Device::Cpu, 1);
+        let batch = synthetic_batch(&config, &ippo, 1).unwrap();
+        assert_eq!(batch.len(), 3, "25 env steps need 3 fragments of 10");
+        for fragment in batch {
+            let dims = Some((config.scenario.obs_dim(), ACTION_DIM));
+            let proto = fragment.clone().into_proto();
+            assert_eq!(RolloutFragment::from_proto(proto, dims).unwrap(), fragment);
+        }
+    }
+}
