@@ -246,10 +246,27 @@ pub struct PpoConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LearnerSection {
+    pub algo: AlgoKind,
     pub device: DeviceChoice,
     pub ingest_queue_fragments: usize,
     pub max_policy_lag: u64,
     pub torch_threads: usize,
+}
+
+/// The learning algorithm (`learner/src/algo`, one file each).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AlgoKind {
+    /// Independent PPO with parameter sharing.
+    Ippo,
+}
+
+impl AlgoKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            AlgoKind::Ippo => "ippo",
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]

@@ -14,10 +14,9 @@ use tokio_stream::wrappers::TcpListenerStream;
 use junction_common::config::{DEFAULT_TOML, DeviceChoice, Layer, RunConfig};
 use junction_common::proto::learner_server::LearnerServer;
 use junction_common::scenarios;
-use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
-use junction_learner::algo::Algorithm;
-use junction_learner::algo::ippo::Ippo;
+use junction_learner::algo;
 use junction_learner::checkpoint::Checkpointer;
 use junction_learner::metrics::LearnerMetrics;
 use junction_learner::server::{LearnerService, Shared};
@@ -53,9 +52,9 @@ enum Command {
 struct BenchArgs {
     #[command(flatten)]
     source: ConfigSource,
-    /// Algorithm to time (ippo; the others come with their implementations).
-    #[arg(long, default_value = "ippo")]
-    algo: String,
+    /// Algorithm to time [config: learner.algo, default ippo].
+    #[arg(long)]
+    algo: Option<String>,
     /// Timed updates (after one untimed warm-up update).
     #[arg(long, default_value_t = 5)]
     updates: usize,
@@ -164,29 +163,23 @@ fn main() -> anyhow::Result<()> {
 }
 
 fn bench(args: BenchArgs) -> anyhow::Result<()> {
-    let device_flag = args
-        .device
-        .as_ref()
-        .map(|d| format!("learner.device={d:?}"));
-    let config = args.source.load(None, device_flag.as_slice())?;
-    if args.algo != "ippo" {
-        bail!("unknown --algo {:?} (available: ippo)", args.algo);
-    }
+    let flags: Vec<String> = [
+        ("learner.device", args.device.as_ref()),
+        ("learner.algo", args.algo.as_ref()),
+    ]
+    .into_iter()
+    .filter_map(|(key, value)| value.map(|v| format!("{key}={v:?}")))
+    .collect();
+    let config = args.source.load(None, &flags)?;
     if config.learner.torch_threads > 0 {
         tch::set_num_threads(config.learner.torch_threads as i32);
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let mut algorithm = Ippo::new(
-        &config.ppo,
-        config.scenario.obs_dim(),
-        ACTION_DIM,
-        device,
-        config.run.seed,
-    );
+    let mut algorithm = algo::build(&config, device);
     let report = junction_learner::bench::run(
         &config,
-        &mut algorithm,
+        algorithm.as_mut(),
         format!("{device:?}"),
         args.updates.max(1),
     )
@@ -270,10 +263,17 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let obs_dim = config.scenario.obs_dim();
-    let mut algorithm = Ippo::new(&config.ppo, obs_dim, ACTION_DIM, device, config.run.seed);
+    let mut algorithm = algo::build(&config, device);
     let progress = match &resume {
         Some(checkpoint) => {
+            if checkpoint.meta.algorithm != algorithm.name() {
+                bail!(
+                    "checkpoint {} was trained by {}, the configuration asks for {} (learner.algo)",
+                    checkpoint.path.display(),
+                    checkpoint.meta.algorithm,
+                    algorithm.name()
+                );
+            }
             if checkpoint.meta.obs_layout_version != OBS_LAYOUT_VERSION {
                 bail!(
                     "checkpoint {} uses observation layout {}, this build uses {}",
@@ -296,7 +296,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let metrics = LearnerMetrics::new().context("registering metrics")?;
     metrics.policy_version.set(progress.version as i64);
     let registry = metrics.registry.clone();
-    let initial = weights_message(&algorithm, progress.version, false)?;
+    let initial = weights_message(algorithm.as_ref(), progress.version, false)?;
     let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
     let (queue_tx, queue_rx) = mpsc::channel(config.learner.ingest_queue_fragments);
 
@@ -340,7 +340,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     tokio::spawn(stop_on_signal(Arc::clone(&stop)));
     let trainer = Trainer {
         shared: Arc::clone(&shared),
-        algorithm: Box::new(algorithm),
+        algorithm,
         queue: queue_rx,
         runtime: tokio::runtime::Handle::current(),
         checkpointer: Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?,

@@ -21,7 +21,12 @@ fn progress_lines(path: &std::path::Path) -> Vec<serde_json::Value> {
 
 #[test]
 fn ppo_learns_to_cross_the_tiny_intersection() {
-    let dir = TempDir::new("learning");
+    learns_to_cross_the_tiny_intersection("ippo");
+}
+
+/// Trains `algo` (`learner.algo`) on the tiny scenario until the success bar or the limits.
+fn learns_to_cross_the_tiny_intersection(algo: &str) {
+    let dir = TempDir::new(&format!("learning-{algo}"));
     let run_dir = dir.path().join("run");
     let window = WINDOW.to_string();
     let (mut learner, endpoints) = start_learner(
@@ -40,6 +45,8 @@ fn ppo_learns_to_cross_the_tiny_intersection() {
             &format!("run.stats_window_episodes={window}"),
             "--set",
             "run.checkpoint_every_updates=0",
+            "--set",
+            &format!("learner.algo={algo}"),
         ],
     );
     let actor = start_actor(
@@ -86,7 +93,7 @@ fn ppo_learns_to_cross_the_tiny_intersection() {
         );
     };
     println!(
-        "learning: success {:.3} after {} updates, {} agent-steps, {:.0} s (first full window: {first_full_window:?})",
+        "learning ({algo}): success {:.3} after {} updates, {} agent-steps, {:.0} s (first full window: {first_full_window:?})",
         hit["window"]["success_rate"].as_f64().unwrap_or(0.0),
         hit["updates"],
         hit["agent_steps"],

@@ -606,8 +606,14 @@ impl Scene {
                     }
                 }
             });
-            neighbours.sort_unstable();
+            // Nearest first (ties by slot), so "the k nearest" is a prefix of the list.
             let cars = &self.cars;
+            let distance = |j: &u32| {
+                cars[*j as usize]
+                    .as_ref()
+                    .map_or(f32::INFINITY, |c| (c.kin.position - p).length())
+            };
+            neighbours.sort_unstable_by(|a, b| distance(a).total_cmp(&distance(b)).then(a.cmp(b)));
             let motion = |kin: &Kinematics| lcf::Motion {
                 position: kin.position.into(),
                 velocity: (Vec2::from_angle(kin.heading) * kin.speed).into(),

@@ -520,6 +520,14 @@ fn neighbourhoods_are_symmetric_and_within_the_radius() {
             .filter(|&(&k, p)| k != slot && (*p - positions[&slot]).length() <= radius)
             .count();
         assert_eq!(mine.len(), expected);
+        let distances: Vec<f32> = mine
+            .iter()
+            .map(|&j| (positions[&(j as usize)] - positions[&slot]).length())
+            .collect();
+        assert!(
+            distances.windows(2).all(|w| w[0] <= w[1]),
+            "nearest first: {distances:?}"
+        );
         total += mine.len();
         let features = &scene.lcf_features()[slot * lcf::FEATURES..(slot + 1) * lcf::FEATURES];
         assert_eq!(

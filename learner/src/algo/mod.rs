@@ -6,10 +6,12 @@ pub mod gae;
 pub mod ippo;
 pub mod ppo;
 
-use tch::Tensor;
+use tch::{Device, Tensor};
 
+use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::policy::GaussianPolicy;
+use junction_common::spec::ACTION_DIM;
 use junction_common::weights::{Decoded, WeightsError};
 
 /// Diagnostics of one policy update, averaged over its minibatches.
@@ -55,4 +57,18 @@ pub trait Algorithm {
     fn state_tensors(&self) -> Vec<(String, Tensor)>;
     /// Restores the policy from its blob and the rest from `state`.
     fn restore(&mut self, policy_blob: &[u8], state: &mut Decoded) -> Result<(), WeightsError>;
+}
+
+/// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
+pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
+    let obs_dim = config.scenario.obs_dim();
+    match config.learner.algo {
+        AlgoKind::Ippo => Box::new(ippo::Ippo::new(
+            &config.ppo,
+            obs_dim,
+            ACTION_DIM,
+            device,
+            config.run.seed,
+        )),
+    }
 }
