@@ -163,6 +163,21 @@ pub struct Endpoints {
     pub metrics: String,
 }
 
+/// `learner serve` flags for a small run that publishes versions within seconds: 8 agents,
+/// fragments of 50 steps, an update every 100 scene steps, progress every second.
+pub const QUICK_RUN: &[&str] = &[
+    "--set",
+    "scenario.agents=8",
+    "--set",
+    "rollout.fragment_length=50",
+    "--set",
+    "ppo.train_batch_env_steps=100",
+    "--set",
+    "ppo.epochs=2",
+    "--set",
+    "run.progress_interval_s=1",
+];
+
 /// Starts `learner serve` on ephemeral loopback ports and waits until it serves. `run_dir`
 /// is passed as `--run-dir` unless `extra` resumes a run (`--resume DIR`).
 pub fn start_learner(run_dir: &Path, log_dir: &Path, extra: &[&str]) -> (Process, Endpoints) {

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use junction_tests::{
-    TempDir, free_port, metric_sum, scrape, start_actor, start_learner, wait_until,
+    QUICK_RUN, TempDir, free_port, metric_sum, scrape, start_actor, start_learner, wait_until,
 };
 
 #[test]
@@ -14,20 +14,7 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
     let (mut learner, endpoints) = start_learner(
         &run_dir,
         dir.path(),
-        &[
-            "--max-seconds",
-            "300",
-            "--set",
-            "scenario.agents=8",
-            "--set",
-            "rollout.fragment_length=50",
-            "--set",
-            "ppo.train_batch_env_steps=100",
-            "--set",
-            "ppo.epochs=2",
-            "--set",
-            "run.progress_interval_s=1",
-        ],
+        &[&["--max-seconds", "300"], QUICK_RUN].concat(),
     );
     let actor_metrics = format!("127.0.0.1:{}", free_port());
     let mut actor = start_actor(

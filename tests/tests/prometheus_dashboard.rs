@@ -10,8 +10,8 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use junction_tests::{
-    Process, TempDir, free_port, http_get, metric_sum, scrape, start_actor, start_learner,
-    wait_until,
+    Process, QUICK_RUN, TempDir, free_port, http_get, metric_sum, scrape, start_actor,
+    start_learner, wait_until,
 };
 
 /// What Grafana would put in for the dashboard's variables.
@@ -130,20 +130,7 @@ fn every_dashboard_panel_returns_data_from_a_real_prometheus() {
     let (mut learner, endpoints) = start_learner(
         &run_dir,
         dir.path(),
-        &[
-            "--max-seconds",
-            "240",
-            "--set",
-            "scenario.agents=8",
-            "--set",
-            "rollout.fragment_length=50",
-            "--set",
-            "ppo.train_batch_env_steps=100",
-            "--set",
-            "ppo.epochs=2",
-            "--set",
-            "run.progress_interval_s=1",
-        ],
+        &[&["--max-seconds", "240"], QUICK_RUN].concat(),
     );
     let actor_metrics = format!("127.0.0.1:{}", free_port());
     let actor = start_actor(
