@@ -1,6 +1,7 @@
-//! Local coordination: the neighbourhood features S_N(i,t) that the paper's dynamic LCF maps
-//! to an angle φ (§3.2). The simulator computes them for every agent and step and ships them
-//! in each `RolloutFragment`; this module owns their layout.
+//! Local coordination (paper §3.2, CoPO): the neighbourhood reward r_N, the coordinated reward
+//! r_C = α·cos φ·r_i + β·sin φ·r_N, and the neighbourhood features S_N(i,t) that the paper's
+//! dynamic LCF maps to an angle φ. The simulator computes S_N for every agent and step and
+//! ships it in each `RolloutFragment`; this module owns its layout.
 //!
 //! | index | feature | normalisation (every value in [0, 1]) |
 //! |---|---|---|
@@ -10,12 +11,44 @@
 //! | 3 | mean relative speed ‖v_j − v_i‖ | / (2 · 80 km/h) |
 //! | 4 | mean closing speed −d‖p_j − p_i‖/dt (+ = approaching) | (c / (2 · 80 km/h) + 1) / 2 (½ when alone) |
 
+use crate::fragment::RolloutFragment;
+
 /// Values per agent and step.
 pub const FEATURES: usize = 5;
 /// Neighbour count at which feature 0 saturates.
 const COUNT_SCALE: f32 = 20.0;
 /// Relative speeds are at most twice the top speed (80 km/h).
 const SPEED_SCALE: f32 = 2.0 * 80.0 / 3.6;
+
+/// r_C = α·cos φ·r_i + β·sin φ·r_N: φ = 0 is selfish (IPPO), φ = 90° fully cooperative.
+pub fn coordinated_reward(
+    own: f32,
+    neighbourhood: f32,
+    phi_rad: f32,
+    alpha: f32,
+    beta: f32,
+) -> f32 {
+    alpha * phi_rad.cos() * own + beta * phi_rad.sin() * neighbourhood
+}
+
+/// r_N per (step, slot) of a fragment: the mean reward of the neighbours at that step (0 when
+/// alone or for an empty cell).
+pub fn neighbourhood_rewards(fragment: &RolloutFragment) -> Vec<f32> {
+    let mut out = vec![0.0; fragment.steps * fragment.agents];
+    for t in 0..fragment.steps {
+        for slot in 0..fragment.agents {
+            let neighbours = fragment.neighbours(t, slot);
+            if fragment.alive[fragment.index(t, slot)] && !neighbours.is_empty() {
+                let sum: f32 = neighbours
+                    .iter()
+                    .map(|&j| fragment.rewards[fragment.index(t, j as usize)])
+                    .sum();
+                out[fragment.index(t, slot)] = sum / neighbours.len() as f32;
+            }
+        }
+    }
+    out
+}
 
 /// A car's position and velocity, metres and m/s in the world frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -68,6 +101,39 @@ pub fn neighbourhood_features(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::f32::consts::FRAC_PI_2;
+
+    #[test]
+    fn coordinated_reward_spans_selfish_to_cooperative() {
+        // φ = 0: the agent's own reward (IPPO); φ = 90°: only the neighbourhood's.
+        assert_eq!(coordinated_reward(2.0, 7.0, 0.0, 1.0, 1.0), 2.0);
+        assert!((coordinated_reward(2.0, 7.0, FRAC_PI_2, 1.0, 1.0) - 7.0).abs() < 1e-5);
+        // φ = 60°, α = 1, β = 0.5: 2·½ + 0.5·7·(√3/2) = 1 + 3.0311
+        let r = coordinated_reward(2.0, 7.0, FRAC_PI_2 * 2.0 / 3.0, 1.0, 0.5);
+        assert!((r - 4.031_089).abs() < 1e-4, "{r}");
+        // Alone (r_N = 0) at 90°: nothing to gain.
+        assert!(coordinated_reward(2.0, 0.0, FRAC_PI_2, 1.0, 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn neighbourhood_reward_is_the_mean_over_the_neighbours_at_that_step() {
+        // 2 steps × 3 slots; step 0: 0 sees {1, 2}, 1 sees {0}, 2 alone; step 1: slot 2 empty,
+        // 0 sees {1}.
+        let fragment = RolloutFragment {
+            steps: 2,
+            agents: 3,
+            rewards: vec![1.0, 2.0, 6.0, 3.0, 5.0, 0.0],
+            alive: vec![true, true, true, true, true, false],
+            dones: vec![false; 6],
+            neighbour_offsets: vec![0, 2, 3, 3, 4, 4, 4],
+            neighbour_ids: vec![1, 2, 0, 1],
+            ..RolloutFragment::default()
+        };
+        assert_eq!(
+            neighbourhood_rewards(&fragment),
+            vec![4.0, 1.0, 0.0, 5.0, 0.0, 0.0]
+        );
+    }
 
     fn car(x: f32, y: f32, vx: f32, vy: f32) -> Motion {
         Motion {
