@@ -340,16 +340,15 @@ impl Scene {
                 energy_kj: self.energy_kj[slot],
                 outcome,
             };
+            // Human drivers neither learn nor pay: no reward, no cost.
             let human = slot >= slots;
             let r = if human {
                 0.0
             } else {
-                reward::reward(&self.config.reward, &facts)
-            };
-            if !human {
-                self.result.rewards[slot] = r;
                 self.result.costs[slot] = reward::cost(&self.config.cost, &facts);
-            }
+                self.result.rewards[slot] = reward::reward(&self.config.reward, &facts);
+                self.result.rewards[slot]
+            };
             if self.crashed[slot] {
                 car.collisions += 1;
             }
