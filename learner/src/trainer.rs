@@ -175,6 +175,8 @@ impl Trainer {
             }
         }
         self.report(&mut reporter, &window)?;
+        // The checkpoint counts every agent-step received, so the stage it implies is logged.
+        self.advance_stage();
         self.checkpoint()?;
         let last = weights_message(
             self.algorithm.as_ref(),
