@@ -68,9 +68,8 @@ pub trait Algorithm {
     /// The stage once `agent_steps` agent-steps have been consumed, in a scenario of
     /// `scenario_agents` agents. It depends on nothing else, so a run resumed from a checkpoint
     /// (which restores the count) continues in its stage. Without a curriculum: stage 0 with
-    /// every agent.
-    fn stage(&self, agent_steps: u64, scenario_agents: usize) -> Stage {
-        let _ = agent_steps;
+    /// every agent, whatever the count.
+    fn stage(&self, _agent_steps: u64, scenario_agents: usize) -> Stage {
         Stage {
             index: 0,
             agents: scenario_agents,
