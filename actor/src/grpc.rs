@@ -188,6 +188,29 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
     Ok(())
 }
 
+/// Simulates the agent count the learner's curriculum asks for with `weights`.
+fn apply_active_agents(
+    worker: &mut RolloutWorker,
+    weights: &proto::PolicyWeights,
+    metrics: &ActorMetrics,
+) -> anyhow::Result<()> {
+    let before = worker.active_agents();
+    let requested = usize::try_from(weights.active_agents).unwrap_or(usize::MAX);
+    if worker
+        .set_active_agents(requested)
+        .context("rebuilding the scenes for the curriculum's agent count")?
+    {
+        tracing::info!(
+            old_agents = before,
+            new_agents = worker.active_agents(),
+            version = weights.version,
+            "scenes rebuilt with the curriculum's agent count"
+        );
+    }
+    metrics.scene_agents.set(worker.active_agents() as i64);
+    Ok(())
+}
+
 #[allow(clippy::too_many_arguments)]
 fn rollout_loop(
     scenario: ScenarioConfig,
@@ -225,6 +248,7 @@ fn rollout_loop(
     )
     .context("building the scenes")?;
     metrics.policy_version.set(initial.version as i64);
+    apply_active_agents(&mut worker, &initial, metrics)?;
     while !finished.load(Ordering::Relaxed) {
         if weights.has_changed().unwrap_or(false) {
             let latest = Arc::clone(&weights.borrow_and_update());
@@ -234,6 +258,7 @@ fn rollout_loop(
                 metrics.policy_switches.inc();
                 tracing::debug!(version = latest.version, "switched policy");
             }
+            apply_active_agents(&mut worker, &latest, metrics)?;
         }
         let _collect =
             tracing::info_span!("collect", policy_version = worker.policy_version()).entered();

@@ -13,6 +13,7 @@ pub struct ActorMetrics {
     pub policy_switches: IntCounter,
     pub inference_seconds: Counter,
     pub simulation_seconds: Counter,
+    pub scene_agents: IntGauge,
 }
 
 impl ActorMetrics {
@@ -33,6 +34,11 @@ impl ActorMetrics {
             "Policy version the actor is running.",
         )?;
         registry.register(Box::new(policy_version.clone()))?;
+        let scene_agents = IntGauge::new(
+            names::ACTOR_SCENE_AGENTS,
+            "Learning-agent slots per scene (fewer than the scenario's during a curriculum).",
+        )?;
+        registry.register(Box::new(scene_agents.clone()))?;
         Ok(ActorMetrics {
             env_steps: counter(names::ACTOR_ENV_STEPS, "Scene steps simulated.")?,
             agent_steps: counter(names::ACTOR_AGENT_STEPS, "Agent-steps simulated.")?,
@@ -53,6 +59,7 @@ impl ActorMetrics {
                 names::ACTOR_SIMULATION_SECONDS,
                 "Time spent stepping scenes.",
             )?,
+            scene_agents,
             registry,
         })
     }

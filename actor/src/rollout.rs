@@ -54,6 +54,10 @@ impl FragmentBuilder {
 }
 
 pub struct RolloutWorker {
+    /// The scenario as the learner sent it, with its full agent count.
+    scenario: ScenarioConfig,
+    /// Seeds the scenes; a new stream after every rebuild, so rebuilt scenes do not replay.
+    scene_seed: u64,
     scenes: Vec<Scene>,
     policy: GaussianPolicy,
     policy_version: u64,
@@ -80,15 +84,10 @@ impl RolloutWorker {
         policy_version: u64,
         actor_id: String,
     ) -> Result<Self, SimError> {
-        let scenes = (0..scenes)
-            .map(|k| Scene::new(scenario, derive_seed(seed, k as u64 + 1)))
-            .collect::<Result<Vec<_>, _>>()?;
-        let scene_actions = scenes
-            .iter()
-            .map(|s| vec![0.0; s.slots() * ACTION_DIM])
-            .collect();
-        let scene_log_probs = scenes.iter().map(|s| vec![0.0; s.slots()]).collect();
-        Ok(RolloutWorker {
+        let scenes = build_scenes(scenario, scenes, seed)?;
+        let mut worker = RolloutWorker {
+            scenario: scenario.clone(),
+            scene_seed: seed,
             scenes,
             policy,
             policy_version,
@@ -99,9 +98,46 @@ impl RolloutWorker {
             batch_obs: Vec::new(),
             batch_noise: Vec::new(),
             batch_rows: Vec::new(),
-            scene_actions,
-            scene_log_probs,
-        })
+            scene_actions: Vec::new(),
+            scene_log_probs: Vec::new(),
+        };
+        worker.size_buffers();
+        Ok(worker)
+    }
+
+    /// Per-scene action and log-probability buffers of the scenes' slot count.
+    fn size_buffers(&mut self) {
+        self.scene_actions = self
+            .scenes
+            .iter()
+            .map(|s| vec![0.0; s.slots() * ACTION_DIM])
+            .collect();
+        self.scene_log_probs = self.scenes.iter().map(|s| vec![0.0; s.slots()]).collect();
+    }
+
+    /// Learning-agent slots per scene, i.e. the `agents` of every fragment.
+    pub fn active_agents(&self) -> usize {
+        self.scenes
+            .first()
+            .map_or(self.scenario.agent_count(), Scene::slots)
+    }
+
+    /// Simulates `agents` learning agents per scene from the next fragment on (0 = the
+    /// scenario's count; more is capped to it). A change rebuilds the scenes from fresh
+    /// seeds, so episodes in flight end unreported: a curriculum changes the count only a
+    /// few times per run. Returns whether anything changed.
+    pub fn set_active_agents(&mut self, agents: usize) -> Result<bool, SimError> {
+        let full = self.scenario.agent_count();
+        let agents = if agents == 0 { full } else { agents.min(full) };
+        if agents == self.active_agents() {
+            return Ok(false);
+        }
+        let scene_seed = derive_seed(self.scene_seed, u64::MAX);
+        let scenario = self.scenario.with_agents(agents);
+        self.scenes = build_scenes(&scenario, self.scenes.len(), scene_seed)?;
+        self.scene_seed = scene_seed;
+        self.size_buffers();
+        Ok(true)
     }
 
     pub fn policy_version(&self) -> u64 {
@@ -215,10 +251,108 @@ impl RolloutWorker {
     }
 }
 
+/// `count` scenes of `scenario`, scene `k` seeded from stream `k + 1` of `seed`.
+fn build_scenes(
+    scenario: &ScenarioConfig,
+    count: usize,
+    seed: u64,
+) -> Result<Vec<Scene>, SimError> {
+    (0..count)
+        .map(|k| Scene::new(scenario, derive_seed(seed, k as u64 + 1)))
+        .collect()
+}
+
 /// A well-mixed seed for stream `stream` of base seed `seed` (SplitMix64 finaliser).
 pub fn derive_seed(seed: u64, stream: u64) -> u64 {
     let mut z = seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two scenes of an 8-agent intersection driven by `policy` (serialised weights).
+    fn worker(seed: u64, policy: &[u8]) -> RolloutWorker {
+        let scenario = ScenarioConfig {
+            agents: 8,
+            ..ScenarioConfig::default()
+        };
+        let (policy, _) = GaussianPolicy::from_bytes(policy, tch::Device::Cpu).unwrap();
+        RolloutWorker::new(&scenario, 2, seed, 40, policy, 0, "test".into()).unwrap()
+    }
+
+    fn random_policy() -> Vec<u8> {
+        let obs_dim = ScenarioConfig::default().obs_dim() as i64;
+        GaussianPolicy::new(tch::Device::Cpu, obs_dim, ACTION_DIM as i64, &[16], 0.0)
+            .to_bytes(0)
+            .unwrap()
+    }
+
+    /// Most agents alive at one step of any fragment.
+    fn max_alive(fragments: &[RolloutFragment]) -> usize {
+        fragments
+            .iter()
+            .flat_map(|f| f.alive.chunks(f.agents))
+            .map(|step| step.iter().filter(|&&a| a).count())
+            .max()
+            .unwrap_or(0)
+    }
+
+    #[test]
+    fn fewer_active_agents_shrink_every_fragment_and_all_restores_the_scenario() {
+        let mut w = worker(3, &random_policy());
+        let (full, _) = w.collect().unwrap();
+        assert!(full.iter().all(|f| f.agents == 8));
+        assert!(
+            max_alive(&full) > 2,
+            "the full scene should fill more than 2 slots"
+        );
+
+        assert!(w.set_active_agents(2).unwrap());
+        assert!(
+            !w.set_active_agents(2).unwrap(),
+            "the same count rebuilds nothing"
+        );
+        for _ in 0..5 {
+            let (fragments, _) = w.collect().unwrap();
+            for f in &fragments {
+                assert_eq!(f.agents, 2);
+                f.validate(Some((f.obs_dim, ACTION_DIM))).unwrap();
+            }
+            let alive = max_alive(&fragments);
+            assert!(
+                (1..=2).contains(&alive),
+                "{alive} agents alive with 2 active"
+            );
+        }
+
+        // 0 (a learner without a curriculum) and more than the scenario both mean all of it.
+        assert!(w.set_active_agents(0).unwrap());
+        assert_eq!(w.active_agents(), 8);
+        assert!(!w.set_active_agents(100).unwrap());
+        let (fragments, _) = w.collect().unwrap();
+        assert!(fragments.iter().all(|f| f.agents == 8));
+    }
+
+    #[test]
+    fn rebuilt_scenes_are_deterministic_and_freshly_seeded() {
+        let policy = random_policy();
+        let run = |seed| {
+            let mut w = worker(seed, &policy);
+            let (before, _) = w.collect().unwrap();
+            w.set_active_agents(4).unwrap();
+            let (after, _) = w.collect().unwrap();
+            (before, after)
+        };
+        let (a_before, a_after) = run(5);
+        let (b_before, b_after) = run(5);
+        assert_eq!(a_before, b_before);
+        assert_eq!(a_after, b_after);
+        // A rebuild does not replay the first scenes' opening (other seeds, other spawns).
+        let first_obs = |f: &RolloutFragment| f.obs[..f.obs_dim].to_vec();
+        assert_ne!(first_obs(&a_before[0]), first_obs(&a_after[0]));
+    }
 }

@@ -50,6 +50,7 @@ pub struct RunConfig {
     pub rollout: RolloutConfig,
     pub ppo: PpoConfig,
     pub learner: LearnerSection,
+    pub curriculum: CurriculumConfig,
     pub server: ServerSection,
 }
 
@@ -259,14 +260,28 @@ pub struct LearnerSection {
 pub enum AlgoKind {
     /// Independent PPO with parameter sharing.
     Ippo,
+    /// IPPO with a curriculum over the number of agents (`[curriculum]`; CoPO's CL baseline).
+    Cl,
 }
 
 impl AlgoKind {
     pub fn name(self) -> &'static str {
         match self {
             AlgoKind::Ippo => "ippo",
+            AlgoKind::Cl => "cl",
         }
     }
+}
+
+/// The agent-count curriculum of `learner.algo = "cl"` (ignored by the other algorithms).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CurriculumConfig {
+    /// Fraction of the scenario's agents each scene simulates in each stage, increasing, in
+    /// (0, 1], the last 1.
+    pub stages: Vec<f64>,
+    /// Agent-steps consumed in each stage before the next begins; the last stage runs on.
+    pub stage_agent_steps: u64,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -381,7 +396,38 @@ impl RunConfig {
         if self.run.progress_interval_s <= 0.0 {
             problems.push("run.progress_interval_s must be > 0".to_string());
         }
+        problems.extend(self.curriculum.problems());
         join_problems(problems)
+    }
+}
+
+impl CurriculumConfig {
+    /// What is wrong with the schedule, one line per problem.
+    fn problems(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        let s = &self.stages;
+        if s.is_empty() {
+            problems.push("curriculum.stages must list at least one stage".to_string());
+        } else {
+            if s.iter().any(|f| !f.is_finite() || *f <= 0.0 || *f > 1.0) {
+                problems.push("curriculum.stages must be fractions in (0, 1]".to_string());
+            }
+            if s.windows(2)
+                .any(|w| w[0].partial_cmp(&w[1]) != Some(std::cmp::Ordering::Less))
+            {
+                problems.push("curriculum.stages must increase strictly".to_string());
+            }
+            if s.last() != Some(&1.0) {
+                problems.push(
+                    "curriculum.stages must end with 1.0 (the last stage trains every agent)"
+                        .to_string(),
+                );
+            }
+        }
+        if self.stage_agent_steps == 0 {
+            problems.push("curriculum.stage_agent_steps must be > 0".to_string());
+        }
+        problems
     }
 }
 
@@ -420,6 +466,17 @@ impl ScenarioConfig {
             Traffic::Light => 0.05,
             Traffic::Medium | Traffic::Heavy => 1.0,
         }
+    }
+
+    /// This scenario with `agents` learning agents (traffic "custom"), keeping its preset's
+    /// respawn rate; human drivers keep their share of the vehicles. An agent-count
+    /// curriculum simulates its stages with it.
+    pub fn with_agents(&self, agents: usize) -> ScenarioConfig {
+        let mut scenario = self.clone();
+        scenario.spawn.respawn_probability = self.respawn_probability();
+        scenario.traffic = Traffic::Custom;
+        scenario.agents = agents;
+        scenario
     }
 
     /// Parses a scenario sent by the learner (or a scenario file), layered over the defaults.
@@ -708,6 +765,45 @@ mod tests {
             Err(ConfigError::Invalid(_))
         ));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn curriculum_defaults_follow_copo_and_bad_schedules_are_refused() {
+        let c = RunConfig::default();
+        assert_eq!(c.curriculum.stages, vec![0.25, 0.5, 0.75, 1.0]);
+        assert_eq!(c.curriculum.stage_agent_steps, 500_000);
+        let cl = RunConfig::load(None, &["learner.algo=\"cl\"".into()]).unwrap();
+        assert_eq!(cl.learner.algo, AlgoKind::Cl);
+        for bad in [
+            "curriculum.stages=[]",
+            "curriculum.stages=[0.5, 0.25, 1.0]",
+            "curriculum.stages=[0.5, 0.5, 1.0]",
+            "curriculum.stages=[0.0, 1.0]",
+            "curriculum.stages=[0.5, 1.5]",
+            "curriculum.stages=[0.25, 0.5]",
+            "curriculum.stage_agent_steps=0",
+        ] {
+            let err = RunConfig::load(None, &[bad.into()]);
+            assert!(
+                matches!(err, Err(ConfigError::Invalid(_))),
+                "{bad} was accepted: {err:?}"
+            );
+        }
+        let one = RunConfig::load(None, &["curriculum.stages=[1.0]".into()]).unwrap();
+        assert_eq!(one.curriculum.stages, vec![1.0]);
+    }
+
+    #[test]
+    fn with_agents_changes_only_the_agent_count() {
+        let heavy = ScenarioConfig {
+            traffic: Traffic::Light,
+            ..ScenarioConfig::default()
+        };
+        let fewer = heavy.with_agents(4);
+        assert_eq!(fewer.agent_count(), 4);
+        assert_eq!(fewer.respawn_probability(), heavy.respawn_probability());
+        assert_eq!(fewer.name, heavy.name);
+        assert_eq!(fewer.obs_dim(), heavy.obs_dim());
     }
 
     #[test]

@@ -49,6 +49,8 @@ pub mod names {
     pub const LEARNER_CLIP_FRACTION: &str = "junction_learner_clip_fraction";
     pub const LEARNER_EXPLAINED_VARIANCE: &str = "junction_learner_explained_variance";
     pub const LEARNER_GRAD_NORM: &str = "junction_learner_grad_norm";
+    pub const LEARNER_CURRICULUM_STAGE: &str = "junction_learner_curriculum_stage";
+    pub const LEARNER_CURRICULUM_AGENTS: &str = "junction_learner_curriculum_agents";
 
     pub const ACTOR_ENV_STEPS: &str = "junction_actor_env_steps_total";
     pub const ACTOR_AGENT_STEPS: &str = "junction_actor_agent_steps_total";
@@ -57,6 +59,7 @@ pub mod names {
     pub const ACTOR_POLICY_SWITCHES: &str = "junction_actor_policy_switches_total";
     pub const ACTOR_INFERENCE_SECONDS: &str = "junction_actor_inference_seconds_total";
     pub const ACTOR_SIMULATION_SECONDS: &str = "junction_actor_simulation_seconds_total";
+    pub const ACTOR_SCENE_AGENTS: &str = "junction_actor_scene_agents";
 }
 
 /// `--log-format` of both binaries (parsed by clap through `FromStr`).

@@ -293,10 +293,19 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         None => Progress::default(),
     };
 
+    // The stage follows from the restored agent-steps: a resumed run continues in its stage.
+    let stage = algorithm.stage(progress.agent_steps, config.scenario.agent_count());
+    tracing::info!(
+        stage = stage.index,
+        agents = stage.agents,
+        agent_steps = progress.agent_steps,
+        "curriculum stage"
+    );
     let metrics = LearnerMetrics::new().context("registering metrics")?;
     metrics.policy_version.set(progress.version as i64);
+    metrics.record_stage(stage);
     let registry = metrics.registry.clone();
-    let initial = weights_message(algorithm.as_ref(), progress.version, false)?;
+    let initial = weights_message(algorithm.as_ref(), progress.version, stage.agents, false)?;
     let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
     let (queue_tx, queue_rx) = mpsc::channel(config.learner.ingest_queue_fragments);
 
@@ -347,6 +356,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         progress_log: run_dir.join("progress.jsonl"),
         stop,
         progress,
+        stage,
     };
     let outcome = tokio::task::spawn_blocking(move || trainer.run())
         .await

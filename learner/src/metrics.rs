@@ -9,7 +9,7 @@ use junction_common::telemetry::names;
 
 use junction_common::fragment::{FragmentError, Outcome, RolloutFragment};
 
-use crate::algo::UpdateStats;
+use crate::algo::{Stage, UpdateStats};
 use crate::stats::WindowSummary;
 
 /// `reason` of fragments refused before validation: undecodable bytes, or another scenario.
@@ -58,6 +58,8 @@ pub struct LearnerMetrics {
     clip_fraction: Gauge,
     explained_variance: Gauge,
     grad_norm: Gauge,
+    curriculum_stage: IntGauge,
+    curriculum_agents: IntGauge,
 }
 
 impl LearnerMetrics {
@@ -244,6 +246,14 @@ impl LearnerMetrics {
                 "Share of return variance explained by the critic.",
             )?,
             grad_norm: gauge(names::LEARNER_GRAD_NORM, "Gradient norm before clipping.")?,
+            curriculum_stage: int_gauge(
+                names::LEARNER_CURRICULUM_STAGE,
+                "Curriculum stage of the newest policy broadcast (0 for algorithms without a curriculum).",
+            )?,
+            curriculum_agents: int_gauge(
+                names::LEARNER_CURRICULUM_AGENTS,
+                "Learning agents per scene that actors are told to simulate.",
+            )?,
             registry,
         })
     }
@@ -311,6 +321,11 @@ impl LearnerMetrics {
         self.clip_fraction.set(stats.clip_fraction);
         self.explained_variance.set(stats.explained_variance);
         self.grad_norm.set(stats.grad_norm);
+    }
+
+    pub fn record_stage(&self, stage: Stage) {
+        self.curriculum_stage.set(stage.index as i64);
+        self.curriculum_agents.set(stage.agents as i64);
     }
 
     pub fn record_window(&self, scenario: &str, summary: &WindowSummary) {

@@ -17,7 +17,7 @@ use junction_common::proto;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::weights;
 
-use crate::algo::{Algorithm, UpdateStats};
+use crate::algo::{Algorithm, Stage, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
 use crate::metrics::DROP_STALE;
 use crate::server::Shared;
@@ -57,12 +57,16 @@ pub struct Trainer {
     pub progress_log: PathBuf,
     pub stop: Arc<AtomicBool>,
     pub progress: Progress,
+    /// The curriculum stage of the newest broadcast, so a change is logged once.
+    pub stage: Stage,
 }
 
-/// Weights message for the current policy.
+/// Weights message for the current policy; actors simulate `active_agents` agents per scene
+/// with it.
 pub fn weights_message(
     algorithm: &dyn Algorithm,
     version: u64,
+    active_agents: usize,
     run_finished: bool,
 ) -> anyhow::Result<proto::PolicyWeights> {
     let policy = algorithm.policy();
@@ -74,6 +78,7 @@ pub fn weights_message(
         obs_dim: policy.obs_dim() as u32,
         action_dim: policy.action_dim() as u32,
         run_finished,
+        active_agents: u32::try_from(active_agents).unwrap_or(u32::MAX),
     })
 }
 
@@ -170,8 +175,15 @@ impl Trainer {
             }
         }
         self.report(&mut reporter, &window)?;
+        // The checkpoint counts every agent-step received, so the stage it implies is logged.
+        self.advance_stage();
         self.checkpoint()?;
-        let last = weights_message(self.algorithm.as_ref(), self.progress.version, true)?;
+        let last = weights_message(
+            self.algorithm.as_ref(),
+            self.progress.version,
+            self.stage.agents,
+            true,
+        )?;
         self.shared.weights.send_replace(Arc::new(last));
         Ok(self.progress)
     }
@@ -191,7 +203,13 @@ impl Trainer {
         self.progress.updates += 1;
         self.progress.samples_trained += stats.samples_trained as u64;
         self.shared.metrics.record_update(&stats, seconds);
-        let message = weights_message(self.algorithm.as_ref(), self.progress.version, false)?;
+        self.advance_stage();
+        let message = weights_message(
+            self.algorithm.as_ref(),
+            self.progress.version,
+            self.stage.agents,
+            false,
+        )?;
         self.shared.weights.send_replace(Arc::new(message));
         self.shared
             .metrics
@@ -203,6 +221,26 @@ impl Trainer {
             self.checkpoint()?;
         }
         Ok(())
+    }
+
+    /// Moves to the curriculum stage the consumed agent-steps call for, before a broadcast.
+    fn advance_stage(&mut self) {
+        let scenario_agents = self.shared.config.scenario.agent_count();
+        let stage = self
+            .algorithm
+            .stage(self.progress.agent_steps, scenario_agents);
+        if stage != self.stage {
+            tracing::info!(
+                old_stage = self.stage.index,
+                new_stage = stage.index,
+                old_agents = self.stage.agents,
+                new_agents = stage.agents,
+                agent_steps = self.progress.agent_steps,
+                "curriculum stage changed"
+            );
+            self.stage = stage;
+            self.shared.metrics.record_stage(stage);
+        }
     }
 
     fn checkpoint(&self) -> anyhow::Result<()> {

@@ -2,6 +2,7 @@
 //! live beside them, written once.
 
 pub mod batch;
+pub mod cl;
 pub mod gae;
 pub mod ippo;
 pub mod ppo;
@@ -46,6 +47,13 @@ pub enum AlgoError {
     EmptyBatch,
 }
 
+/// A curriculum stage: its index and the learning agents each scene simulates in it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Stage {
+    pub index: usize,
+    pub agents: usize,
+}
+
 /// What the training loop needs from an algorithm.
 pub trait Algorithm {
     fn name(&self) -> &'static str;
@@ -57,18 +65,31 @@ pub trait Algorithm {
     fn state_tensors(&self) -> Vec<(String, Tensor)>;
     /// Restores the policy from its blob and the rest from `state`.
     fn restore(&mut self, policy_blob: &[u8], state: &mut Decoded) -> Result<(), WeightsError>;
+    /// The stage once `agent_steps` agent-steps have been consumed, in a scenario of
+    /// `scenario_agents` agents. It depends on nothing else, so a run resumed from a checkpoint
+    /// (which restores the count) continues in its stage. Without a curriculum: stage 0 with
+    /// every agent, whatever the count.
+    fn stage(&self, _agent_steps: u64, scenario_agents: usize) -> Stage {
+        Stage {
+            index: 0,
+            agents: scenario_agents,
+        }
+    }
 }
 
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
 pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
-    let obs_dim = config.scenario.obs_dim();
-    match config.learner.algo {
-        AlgoKind::Ippo => Box::new(ippo::Ippo::new(
+    let ippo = || {
+        ippo::Ippo::new(
             &config.ppo,
-            obs_dim,
+            config.scenario.obs_dim(),
             ACTION_DIM,
             device,
             config.run.seed,
-        )),
+        )
+    };
+    match config.learner.algo {
+        AlgoKind::Ippo => Box::new(ippo()),
+        AlgoKind::Cl => Box::new(cl::Cl::new(ippo(), cl::Curriculum::new(&config.curriculum))),
     }
 }
