@@ -49,6 +49,7 @@ pub struct RunConfig {
     pub scenario: ScenarioConfig,
     pub rollout: RolloutConfig,
     pub ppo: PpoConfig,
+    pub ccppo: CcppoConfig,
     pub learner: LearnerSection,
     pub server: ServerSection,
 }
@@ -243,6 +244,14 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
 }
 
+/// The centralised-critic baselines' own settings (`ccppo-concat`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CcppoConfig {
+    /// k: nearest neighbours whose observations and actions the concat critic sees.
+    pub neighbours: usize,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LearnerSection {
@@ -259,12 +268,18 @@ pub struct LearnerSection {
 pub enum AlgoKind {
     /// Independent PPO with parameter sharing.
     Ippo,
+    /// Centralised-critic PPO, critic on own obs + neighbours' mean obs and mean action.
+    CcppoMf,
+    /// Centralised-critic PPO, critic on own obs + k nearest neighbours' obs and actions.
+    CcppoConcat,
 }
 
 impl AlgoKind {
     pub fn name(self) -> &'static str {
         match self {
             AlgoKind::Ippo => "ippo",
+            AlgoKind::CcppoMf => "ccppo-mf",
+            AlgoKind::CcppoConcat => "ccppo-concat",
         }
     }
 }
@@ -370,6 +385,9 @@ impl RunConfig {
         }
         if p.hidden.is_empty() || p.hidden.iter().any(|&h| h <= 0) {
             problems.push("ppo.hidden must list at least one positive layer size".to_string());
+        }
+        if self.ccppo.neighbours == 0 {
+            problems.push("ccppo.neighbours must be > 0".to_string());
         }
         if self.learner.ingest_queue_fragments == 0 {
             problems.push("learner.ingest_queue_fragments must be > 0".to_string());
