@@ -24,6 +24,16 @@ fn ppo_learns_to_cross_the_tiny_intersection() {
     learns_to_cross_the_tiny_intersection("ippo");
 }
 
+#[test]
+fn ccppo_mf_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("ccppo-mf");
+}
+
+#[test]
+fn ccppo_concat_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("ccppo-concat");
+}
+
 /// Trains `algo` (`learner.algo`) on the tiny scenario until the success bar or the limits.
 fn learns_to_cross_the_tiny_intersection(algo: &str) {
     let dir = TempDir::new(&format!("learning-{algo}"));

@@ -76,3 +76,60 @@ impl CcppoConcat {
         )
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::shared_ppo::testing::{
+        assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, unnormalized,
+    };
+    use junction_common::config::RunConfig;
+
+    #[test]
+    fn concat_rows_on_a_known_neighbourhood() {
+        let raw = neighbourhood_fragment();
+        let f = unnormalized(&raw);
+        let concat = Concat { neighbours: 4 };
+        assert_eq!(concat.width(2, 2), 2 + 4 * 4);
+        let z = 0.0;
+        // Five neighbours, nearest first: the farthest (slot 1) is left out.
+        close(
+            &rows(&concat, &f, 0, 0),
+            &[
+                1., 1., 6., 1., 5., 1., 4., 1., 3., 1., 0.6, 0.5, 0.5, 0.5, 0.4, 0.5, 0.3, 0.5,
+            ],
+        );
+        // No neighbours: all padding.
+        close(
+            &rows(&concat, &f, 0, 1),
+            &[2., 1., z, z, z, z, z, z, z, z, z, z, z, z, z, z, z, z],
+        );
+        close(
+            &rows(&concat, &f, 0, 2),
+            &[3., 1., 1., 1., z, z, z, z, z, z, 0.1, 0.5, z, z, z, z, z, z],
+        );
+        // At t = 1 slot 5 is empty, so slot 1 is the nearest.
+        close(
+            &rows(&concat, &f, 1, 0),
+            &[
+                1., 11., 2., 11., z, z, z, z, z, z, 0.2, -0.5, z, z, z, z, z, z,
+            ],
+        );
+        // Bootstrap: own bootstrap observation, the last step's neighbours.
+        let mut bootstrap = Vec::new();
+        concat.row(&f, &f.bootstrap_obs[6..8], 1, 3, &mut bootstrap);
+        close(
+            &bootstrap,
+            &[
+                103., 7., 5., 11., z, z, z, z, z, z, 0.5, -0.5, z, z, z, z, z, z,
+            ],
+        );
+    }
+
+    #[test]
+    fn checkpoint_state_restores_an_identical_learner() {
+        let mut config = RunConfig::default().ppo;
+        config.hidden = vec![8];
+        assert_checkpoint_round_trip(|| CcppoConcat::new(&config, 4, 2, 2, Device::Cpu, 7));
+    }
+}

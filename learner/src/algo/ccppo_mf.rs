@@ -72,3 +72,41 @@ impl CcppoMf {
         )
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::shared_ppo::testing::{
+        assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, unnormalized,
+    };
+    use junction_common::config::RunConfig;
+
+    #[test]
+    fn mean_field_rows_on_a_known_neighbourhood() {
+        let raw = neighbourhood_fragment();
+        let f = unnormalized(&raw);
+        assert_eq!(MeanField.width(2, 2), 6);
+        // Five neighbours: obs x mean (6+5+4+3+2)/5 = 4, action mean (.6+.5+.4+.3+.2)/5 = .4.
+        close(&rows(&MeanField, &f, 0, 0), &[1.0, 1.0, 4.0, 1.0, 0.4, 0.5]);
+        // No neighbours: zero means.
+        close(&rows(&MeanField, &f, 0, 1), &[2.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
+        close(&rows(&MeanField, &f, 0, 2), &[3.0, 1.0, 1.0, 1.0, 0.1, 0.5]);
+        close(&rows(&MeanField, &f, 0, 3), &[4.0, 1.0, 4.0, 1.0, 0.4, 0.5]);
+        // At t = 1 slot 5 is empty, so only slot 1 counts.
+        close(
+            &rows(&MeanField, &f, 1, 0),
+            &[1.0, 11.0, 2.0, 11.0, 0.2, -0.5],
+        );
+        // Bootstrap: own bootstrap observation, the last step's neighbour means.
+        let mut bootstrap = Vec::new();
+        MeanField.row(&f, &f.bootstrap_obs[0..2], 1, 0, &mut bootstrap);
+        close(&bootstrap, &[100.0, 7.0, 2.0, 11.0, 0.2, -0.5]);
+    }
+
+    #[test]
+    fn checkpoint_state_restores_an_identical_learner() {
+        let mut config = RunConfig::default().ppo;
+        config.hidden = vec![8];
+        assert_checkpoint_round_trip(|| CcppoMf::new(&config, 2, 2, Device::Cpu, 7));
+    }
+}

@@ -211,3 +211,137 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         Ok(())
     }
 }
+
+/// Fixtures for the algorithms' tests: a fragment with a known neighbourhood and a checkpoint
+/// round trip.
+#[cfg(test)]
+pub(crate) mod testing {
+    use super::*;
+    use crate::algo::batch::NormalizedFragment;
+
+    /// 2 steps × 6 slots, obs_dim = action_dim = 2, all alive except slot 5 at t = 1 (done at
+    /// t = 0). obs(t, s) = [s + 1, 10t + 1]; action(t, s) = [0.1(s + 1), 0.5 − t];
+    /// bootstrap_obs(s) = [100 + s, 7]. Neighbours, nearest first:
+    /// t = 0: 0 → [5, 4, 3, 2, 1]; 2 → [0]; 3 → [4, 2]; the rest none.
+    /// t = 1: 0 → [5, 1] (5 is empty then); 3 → [4]; the rest none.
+    pub fn neighbourhood_fragment() -> RolloutFragment {
+        let (steps, agents) = (2, 6);
+        let cells = steps * agents;
+        let mut obs = Vec::new();
+        let mut actions = Vec::new();
+        for t in 0..steps {
+            for s in 0..agents {
+                obs.extend([s as f32 + 1.0, 10.0 * t as f32 + 1.0]);
+                actions.extend([0.1 * (s as f32 + 1.0), 0.5 - t as f32]);
+            }
+        }
+        let mut alive = vec![true; cells];
+        alive[agents + 5] = false;
+        let mut dones = vec![false; cells];
+        dones[5] = true;
+        let lists: [&[u32]; 12] = [
+            &[5, 4, 3, 2, 1],
+            &[],
+            &[0],
+            &[4, 2],
+            &[],
+            &[],
+            &[5, 1],
+            &[],
+            &[],
+            &[4],
+            &[],
+            &[],
+        ];
+        let mut neighbour_offsets = vec![0u32];
+        let mut neighbour_ids = Vec::new();
+        for list in lists {
+            neighbour_ids.extend_from_slice(list);
+            neighbour_offsets.push(neighbour_ids.len() as u32);
+        }
+        RolloutFragment {
+            steps,
+            agents,
+            obs_dim: 2,
+            action_dim: 2,
+            obs,
+            actions,
+            log_probs: vec![-2.0; cells],
+            rewards: (0..cells).map(|i| (i % 3) as f32 - 0.5).collect(),
+            costs: vec![0.0; cells],
+            dones,
+            alive,
+            bootstrap_obs: (0..agents).flat_map(|s| [100.0 + s as f32, 7.0]).collect(),
+            neighbour_offsets,
+            neighbour_ids,
+            ..RolloutFragment::default()
+        }
+    }
+
+    /// `raw` as if the normaliser were the identity, so expected rows can be hand-computed.
+    pub fn unnormalized(raw: &RolloutFragment) -> NormalizedFragment<'_> {
+        NormalizedFragment {
+            raw,
+            obs: raw.obs.clone(),
+            bootstrap_obs: raw.bootstrap_obs.clone(),
+        }
+    }
+
+    /// The critic row of `slot` at `t` (own = its observation there) and its bootstrap row.
+    pub fn rows(
+        input: &impl CriticInput,
+        f: &NormalizedFragment,
+        t: usize,
+        slot: usize,
+    ) -> Vec<f32> {
+        let mut out = Vec::new();
+        input.row(f, f.obs(t, slot), t, slot, &mut out);
+        out
+    }
+
+    /// Equal up to float rounding, with both sides shown on failure.
+    pub fn close(got: &[f32], expected: &[f32]) {
+        assert_eq!(got.len(), expected.len(), "{got:?}");
+        for (g, e) in got.iter().zip(expected) {
+            assert!((g - e).abs() < 1e-6, "got {got:?}, expected {expected:?}");
+        }
+    }
+
+    fn host_state(algo: &dyn Algorithm) -> Vec<(String, Vec<f32>)> {
+        algo.state_tensors()
+            .into_iter()
+            .map(|(n, t)| (n, Vec::<f32>::try_from(t.flatten(0, -1)).unwrap()))
+            .collect()
+    }
+
+    /// A learner restored from another's checkpoint holds the same state and, given the same
+    /// fragment, makes the same next update (policy, critic and Adam moments alike).
+    pub fn assert_checkpoint_round_trip<A: Algorithm>(make: impl Fn() -> A) {
+        tch::manual_seed(3);
+        let fragment = neighbourhood_fragment();
+        let mut a = make();
+        a.update(std::slice::from_ref(&fragment)).unwrap();
+        let state = a.state_tensors();
+        let refs: Vec<(String, &Tensor)> = state.iter().map(|(n, t)| (n.clone(), t)).collect();
+        let bytes = weights::encode(&refs, Default::default()).unwrap();
+        let mut b = make();
+        b.restore(
+            &a.policy().to_bytes(1).unwrap(),
+            &mut Decoded::decode(&bytes).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(host_state(&a), host_state(&b), "restored state");
+        a.update(std::slice::from_ref(&fragment)).unwrap();
+        b.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!(
+            a.policy().to_bytes(2).unwrap(),
+            b.policy().to_bytes(2).unwrap(),
+            "policy after the next update"
+        );
+        assert_eq!(
+            host_state(&a),
+            host_state(&b),
+            "state after the next update"
+        );
+    }
+}
