@@ -49,6 +49,7 @@ pub struct RunConfig {
     pub scenario: ScenarioConfig,
     pub rollout: RolloutConfig,
     pub ppo: PpoConfig,
+    pub ccppo: CcppoConfig,
     pub learner: LearnerSection,
     pub curriculum: CurriculumConfig,
     pub server: ServerSection,
@@ -244,6 +245,14 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
 }
 
+/// The centralised-critic baselines' own settings (`ccppo-concat`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CcppoConfig {
+    /// k: nearest neighbours whose observations and actions the concat critic sees.
+    pub neighbours: usize,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LearnerSection {
@@ -262,6 +271,10 @@ pub enum AlgoKind {
     Ippo,
     /// IPPO with a curriculum over the number of agents (`[curriculum]`; CoPO's CL baseline).
     Cl,
+    /// Centralised-critic PPO, critic on own obs + neighbours' mean obs and mean action.
+    CcppoMf,
+    /// Centralised-critic PPO, critic on own obs + k nearest neighbours' obs and actions.
+    CcppoConcat,
 }
 
 impl AlgoKind {
@@ -269,6 +282,8 @@ impl AlgoKind {
         match self {
             AlgoKind::Ippo => "ippo",
             AlgoKind::Cl => "cl",
+            AlgoKind::CcppoMf => "ccppo-mf",
+            AlgoKind::CcppoConcat => "ccppo-concat",
         }
     }
 }
@@ -385,6 +400,9 @@ impl RunConfig {
         }
         if p.hidden.is_empty() || p.hidden.iter().any(|&h| h <= 0) {
             problems.push("ppo.hidden must list at least one positive layer size".to_string());
+        }
+        if self.ccppo.neighbours == 0 {
+            problems.push("ccppo.neighbours must be > 0".to_string());
         }
         if self.learner.ingest_queue_fragments == 0 {
             problems.push("learner.ingest_queue_fragments must be > 0".to_string());

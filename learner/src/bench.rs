@@ -30,6 +30,10 @@ pub struct BenchReport {
     pub agent_steps_per_s: f64,
 }
 
+/// Neighbours every synthetic agent lists (the next slots, wrapping round): a stand-in so the
+/// centralised critics pay for building their inputs, not a measured count.
+const SYNTHETIC_NEIGHBOURS: usize = 8;
+
 /// One training batch: enough fragments of every agent alive for `train_batch_env_steps`.
 pub fn synthetic_batch(
     config: &RunConfig,
@@ -44,6 +48,10 @@ pub fn synthetic_batch(
     let obs_dim = config.scenario.obs_dim();
     let cells = steps * agents;
     let fragments = config.ppo.train_batch_env_steps.div_ceil(steps);
+    let per_agent = SYNTHETIC_NEIGHBOURS.min(agents - 1);
+    let neighbour_ids: Vec<u32> = (0..cells)
+        .flat_map(|cell| (1..=per_agent).map(move |d| ((cell % agents + d) % agents) as u32))
+        .collect();
     (0..fragments)
         .map(|_| {
             let obs: Vec<f32> = (0..cells * obs_dim).map(|_| rng.r#gen::<f32>()).collect();
@@ -65,7 +73,8 @@ pub fn synthetic_batch(
                 dones: vec![false; cells],
                 alive: vec![true; cells],
                 bootstrap_obs: (0..agents * obs_dim).map(|_| rng.r#gen::<f32>()).collect(),
-                neighbour_offsets: vec![0; cells + 1],
+                neighbour_offsets: (0..=cells).map(|c| (c * per_agent) as u32).collect(),
+                neighbour_ids: neighbour_ids.clone(),
                 lcf_features: vec![0.0; cells * lcf::FEATURES],
                 ..RolloutFragment::default()
             })

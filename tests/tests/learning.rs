@@ -35,6 +35,16 @@ fn cl_learns_to_cross_the_tiny_intersection() {
     learns_to_cross_the_tiny_intersection("cl");
 }
 
+#[test]
+fn ccppo_mf_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("ccppo-mf");
+}
+
+#[test]
+fn ccppo_concat_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("ccppo-concat");
+}
+
 /// Trains `algo` (`learner.algo`) on the tiny scenario until the success bar or the limits.
 fn learns_to_cross_the_tiny_intersection(algo: &str) {
     // A test that failed while holding the lock poisons it; the others still run.

@@ -13,12 +13,58 @@ use super::gae::{Estimates, Trajectories, gae};
 pub struct TrainBatch {
     /// Raw observations [n, obs_dim]; algorithms normalise with the policy's statistics.
     pub obs: Tensor,
+    /// The critic's input rows [n, width], built by the algorithm's [`CriticInput`] from
+    /// normalised observations (fixed for the whole update, like the statistics).
+    pub critic_inputs: Tensor,
     pub actions: Tensor,
     pub old_log_probs: Tensor,
     pub advantages: Tensor,
     pub returns: Tensor,
     pub old_values: Tensor,
     pub len: usize,
+}
+
+/// A fragment with its observations normalised by the policy's statistics: what critic inputs
+/// are built from, so the critic sees the same scale as the actor.
+pub struct NormalizedFragment<'a> {
+    pub raw: &'a RolloutFragment,
+    /// Normalised `raw.obs`, every cell (empty ones too).
+    pub obs: Vec<f32>,
+    /// Normalised `raw.bootstrap_obs`.
+    pub bootstrap_obs: Vec<f32>,
+}
+
+impl NormalizedFragment<'_> {
+    pub fn obs(&self, t: usize, slot: usize) -> &[f32] {
+        let (i, d) = (self.raw.index(t, slot), self.raw.obs_dim);
+        &self.obs[i * d..(i + 1) * d]
+    }
+
+    pub fn action(&self, t: usize, slot: usize) -> &[f32] {
+        let (i, d) = (self.raw.index(t, slot), self.raw.action_dim);
+        &self.raw.actions[i * d..(i + 1) * d]
+    }
+
+    /// Neighbours of `slot` at step `t` (nearest first) that hold an agent at `t`; the filter
+    /// keeps a malformed list from feeding an empty cell's zeros to the critic.
+    pub fn live_neighbours(&self, t: usize, slot: usize) -> impl Iterator<Item = usize> + '_ {
+        self.raw
+            .neighbours(t, slot)
+            .iter()
+            .map(|&n| n as usize)
+            .filter(move |&n| n != slot && self.raw.alive[self.raw.index(t, n)])
+    }
+}
+
+/// What the critic sees for one agent: the one thing the PPO algorithms with parameter sharing
+/// differ in (IPPO: its own observation; CCPPO: plus its neighbours').
+pub trait CriticInput {
+    /// Values per row for a run's observation and action sizes.
+    fn width(&self, obs_dim: usize, action_dim: usize) -> usize;
+    /// Appends the row of `slot` at step `t` with `own` as its own (normalised) observation.
+    /// For the bootstrap value after the fragment `own` is the bootstrap observation and `t`
+    /// the last step, whose neighbourhood stands in for the unseen next one.
+    fn row(&self, f: &NormalizedFragment, own: &[f32], t: usize, slot: usize, out: &mut Vec<f32>);
 }
 
 /// Observations of the alive cells of `fragments`, row-major.
@@ -32,30 +78,68 @@ pub fn alive_observations(fragments: &[RolloutFragment]) -> Vec<f32> {
     rows
 }
 
-/// Evaluates `value_of` (raw obs [m, obs_dim] → values [m]) on every alive cell and bootstrap
-/// observation in one pass, then runs GAE per fragment.
+/// `normalize` applied to `rows` (row-major, `dim` wide) on `device`, back on the host.
+fn normalized(
+    rows: &[f32],
+    dim: usize,
+    normalize: &impl Fn(&Tensor) -> Tensor,
+    device: Device,
+) -> Result<Vec<f32>, tch::TchError> {
+    let t = Tensor::from_slice(rows)
+        .reshape([(rows.len() / dim) as i64, dim as i64])
+        .to_device(device);
+    Vec::<f32>::try_from(
+        normalize(&t)
+            .to_device(Device::Cpu)
+            .to_kind(Kind::Float)
+            .flatten(0, -1),
+    )
+}
+
+/// Builds the critic rows of every alive cell and of every bootstrap observation with `input`
+/// (from observations passed through `normalize`), evaluates `value_of` (rows → values [m]) on
+/// all of them in one pass, then runs GAE per fragment.
 pub fn assemble(
     fragments: &[RolloutFragment],
+    input: &impl CriticInput,
+    normalize: impl Fn(&Tensor) -> Tensor,
     value_of: impl Fn(&Tensor) -> Tensor,
     gamma: f32,
     lambda: f32,
     device: Device,
 ) -> Result<TrainBatch, tch::TchError> {
     let obs_dim = fragments.first().map_or(1, |f| f.obs_dim);
-    let mut rows = alive_observations(fragments);
-    let alive_rows = rows.len() / obs_dim;
-    for f in fragments {
-        for slot in (0..f.agents).filter(|&s| f.needs_bootstrap(s)) {
-            rows.extend_from_slice(&f.bootstrap_obs[slot * obs_dim..(slot + 1) * obs_dim]);
+    let action_dim = fragments.first().map_or(1, |f| f.action_dim);
+    let width = input.width(obs_dim, action_dim);
+    let (mut rows, mut bootstrap_rows) = (Vec::new(), Vec::new());
+    tch::no_grad(|| -> Result<(), tch::TchError> {
+        for raw in fragments {
+            let f = NormalizedFragment {
+                raw,
+                obs: normalized(&raw.obs, obs_dim, &normalize, device)?,
+                bootstrap_obs: normalized(&raw.bootstrap_obs, obs_dim, &normalize, device)?,
+            };
+            for t in 0..raw.steps {
+                for slot in (0..raw.agents).filter(|&s| raw.alive[raw.index(t, s)]) {
+                    input.row(&f, f.obs(t, slot), t, slot, &mut rows);
+                }
+            }
+            for slot in (0..raw.agents).filter(|&s| raw.needs_bootstrap(s)) {
+                let own = &f.bootstrap_obs[slot * obs_dim..(slot + 1) * obs_dim];
+                input.row(&f, own, raw.steps - 1, slot, &mut bootstrap_rows);
+            }
         }
-    }
-    let all_rows = rows.len() / obs_dim;
+        Ok(())
+    })?;
+    let alive_rows = rows.len() / width;
+    rows.extend_from_slice(&bootstrap_rows);
+    let all_rows = rows.len() / width;
+    let critic_inputs = Tensor::from_slice(&rows)
+        .reshape([all_rows as i64, width as i64])
+        .to_device(device);
     let values: Vec<f32> = tch::no_grad(|| {
-        let obs = Tensor::from_slice(&rows)
-            .reshape([all_rows as i64, obs_dim as i64])
-            .to_device(device);
         Vec::<f32>::try_from(
-            value_of(&obs)
+            value_of(&critic_inputs)
                 .to_device(Device::Cpu)
                 .to_kind(Kind::Float)
                 .flatten(0, -1),
@@ -63,6 +147,7 @@ pub fn assemble(
     })?;
     let (alive_values, bootstrap_pool) = values.split_at(alive_rows);
 
+    let mut obs = Vec::with_capacity(alive_rows * obs_dim);
     let mut actions = Vec::new();
     let mut old_log_probs = Vec::new();
     let mut advantages = Vec::with_capacity(alive_rows);
@@ -103,6 +188,7 @@ pub fn assemble(
             lambda,
         );
         for cell in (0..cells).filter(|&c| f.alive[c]) {
+            obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
             actions.extend_from_slice(&f.actions[cell * f.action_dim..(cell + 1) * f.action_dim]);
             old_log_probs.push(f.log_probs[cell]);
             advantages.push(adv[cell]);
@@ -110,14 +196,12 @@ pub fn assemble(
             old_values.push(cell_values[cell]);
         }
     }
-    let action_dim = fragments.first().map_or(1, |f| f.action_dim) as i64;
     let n = alive_rows as i64;
     let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
     Ok(TrainBatch {
-        obs: Tensor::from_slice(&rows[..alive_rows * obs_dim])
-            .reshape([n, obs_dim as i64])
-            .to_device(device),
-        actions: to(&actions).reshape([n, action_dim]),
+        obs: to(&obs).reshape([n, obs_dim as i64]),
+        critic_inputs: critic_inputs.narrow(0, 0, n),
+        actions: to(&actions).reshape([n, action_dim as i64]),
         old_log_probs: to(&old_log_probs),
         advantages: to(&advantages),
         returns: to(&returns),

@@ -2,10 +2,13 @@
 //! live beside them, written once.
 
 pub mod batch;
+pub mod ccppo_concat;
+pub mod ccppo_mf;
 pub mod cl;
 pub mod gae;
 pub mod ippo;
 pub mod ppo;
+pub mod shared_ppo;
 
 use tch::{Device, Tensor};
 
@@ -79,17 +82,23 @@ pub trait Algorithm {
 
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
 pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
-    let ippo = || {
-        ippo::Ippo::new(
-            &config.ppo,
-            config.scenario.obs_dim(),
+    let (ppo, obs_dim, seed) = (&config.ppo, config.scenario.obs_dim(), config.run.seed);
+    match config.learner.algo {
+        AlgoKind::Ippo => Box::new(ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed)),
+        AlgoKind::Cl => Box::new(cl::Cl::new(
+            ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed),
+            cl::Curriculum::new(&config.curriculum),
+        )),
+        AlgoKind::CcppoMf => Box::new(ccppo_mf::CcppoMf::new(
+            ppo, obs_dim, ACTION_DIM, device, seed,
+        )),
+        AlgoKind::CcppoConcat => Box::new(ccppo_concat::CcppoConcat::new(
+            ppo,
+            config.ccppo.neighbours,
+            obs_dim,
             ACTION_DIM,
             device,
-            config.run.seed,
-        )
-    };
-    match config.learner.algo {
-        AlgoKind::Ippo => Box::new(ippo()),
-        AlgoKind::Cl => Box::new(cl::Cl::new(ippo(), cl::Curriculum::new(&config.curriculum))),
+            seed,
+        )),
     }
 }

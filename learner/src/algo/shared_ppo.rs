@@ -1,0 +1,347 @@
+//! PPO with parameter sharing, written once for IPPO and the centralised-critic baselines: one
+//! decentralised Gaussian policy on each agent's own observation, one critic on what the
+//! algorithm's [`CriticInput`] builds, one Adam over both.
+//!
+//! ```text
+//! for each update:
+//!     fold the batch's observations into the running normaliser
+//!     x ← critic_input(normalised obs, neighbourhoods); V ← critic(x)
+//!     A, R ← GAE(rewards, V, γ, λ) per agent
+//!     repeat `epochs` times, over shuffled minibatches:
+//!         ρ = π(a|s) / π_behaviour(a|s)
+//!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·L_V(V(x), R) − c_e·H[π]
+//!         Adam step on ∇L, gradient norm clipped
+//! ```
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tch::nn::{self, Module};
+use tch::{Device, Kind, Tensor};
+
+use junction_common::config::PpoConfig;
+use junction_common::fragment::RolloutFragment;
+use junction_common::policy::{GaussianPolicy, Mlp, gaussian_entropy, gaussian_log_prob};
+use junction_common::weights::{self, Decoded, WeightsError};
+
+use super::batch::{
+    CriticInput, alive_observations, assemble, epoch_minibatches, explained_variance, standardize,
+};
+use super::ppo::{clipped_surrogate, value_loss};
+use super::{AlgoError, Algorithm, UpdateStats};
+use crate::optim::Adam;
+
+pub struct SharedPpo<C> {
+    /// `learner.algo` value; also prefixes the checkpointed update count.
+    name: &'static str,
+    critic_input: C,
+    config: PpoConfig,
+    policy: GaussianPolicy,
+    critic_store: nn::VarStore,
+    critic: Mlp,
+    adam: Adam,
+    seed: u64,
+    updates: u64,
+}
+
+impl<C: CriticInput> SharedPpo<C> {
+    pub fn with_critic_input(
+        name: &'static str,
+        critic_input: C,
+        config: &PpoConfig,
+        obs_dim: usize,
+        action_dim: usize,
+        device: Device,
+        seed: u64,
+    ) -> Self {
+        let policy = GaussianPolicy::new(
+            device,
+            obs_dim as i64,
+            action_dim as i64,
+            &config.hidden,
+            config.init_log_std,
+        );
+        let critic_store = nn::VarStore::new(device);
+        let critic = Mlp::new(
+            critic_store.root() / "critic",
+            critic_input.width(obs_dim, action_dim) as i64,
+            &config.hidden,
+            1,
+            1.0,
+        );
+        let mut params = policy.trainable();
+        params.extend(critic_store.trainable_variables());
+        let adam = Adam::new(params, config.learning_rate, config.adam_eps);
+        SharedPpo {
+            name,
+            critic_input,
+            config: config.clone(),
+            policy,
+            critic_store,
+            critic,
+            adam,
+            seed,
+            updates: 0,
+        }
+    }
+
+    fn value(&self, critic_inputs: &Tensor) -> Tensor {
+        self.critic.forward(critic_inputs).squeeze_dim(-1)
+    }
+
+    fn updates_key(&self) -> String {
+        format!("{}.updates", self.name)
+    }
+}
+
+impl<C: CriticInput> Algorithm for SharedPpo<C> {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn policy(&self) -> &GaussianPolicy {
+        &self.policy
+    }
+
+    fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
+        let c = self.config.clone();
+        if c.normalize_observations {
+            // The policy's own (f32) statistics are the state, so a restored learner continues
+            // bit for bit.
+            let mut stats = self.policy.obs_stats()?;
+            stats.update(&alive_observations(fragments));
+            self.policy.set_obs_stats(&stats);
+        }
+        let device = self.policy.device();
+        let batch = assemble(
+            fragments,
+            &self.critic_input,
+            |obs| self.policy.normalize(obs),
+            |x| self.value(x),
+            c.gamma,
+            c.gae_lambda,
+            device,
+        )?;
+        if batch.len == 0 {
+            return Err(AlgoError::EmptyBatch);
+        }
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut stats = UpdateStats {
+            agent_steps: batch.len,
+            explained_variance: explained_variance(&batch.old_values, &batch.returns),
+            learning_rate: self.adam.learning_rate(),
+            ..UpdateStats::default()
+        };
+        let mut minibatches = 0usize;
+        for _ in 0..c.epochs {
+            for idx in epoch_minibatches(batch.len, c.minibatch_size, &mut rng, device) {
+                let obs = self.policy.normalize(&batch.obs.index_select(0, &idx));
+                let advantages = batch.advantages.index_select(0, &idx);
+                let advantages = if c.normalize_advantages {
+                    standardize(&advantages)
+                } else {
+                    advantages
+                };
+                let (mean, log_std) = self.policy.distribution(&obs);
+                let log_probs =
+                    gaussian_log_prob(&mean, &log_std, &batch.actions.index_select(0, &idx));
+                let surrogate = clipped_surrogate(
+                    &log_probs,
+                    &batch.old_log_probs.index_select(0, &idx),
+                    &advantages,
+                    c.clip,
+                );
+                let v_loss = value_loss(
+                    &self.value(&batch.critic_inputs.index_select(0, &idx)),
+                    &batch.old_values.index_select(0, &idx),
+                    &batch.returns.index_select(0, &idx),
+                    c.value_clip,
+                );
+                let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
+                let loss = &surrogate.loss + &v_loss * c.value_coef - &entropy * c.entropy_coef;
+                let loss_value = f64::try_from(&loss)?;
+                if !loss_value.is_finite() {
+                    stats.skipped_minibatches += 1;
+                    continue;
+                }
+                self.adam.zero_grad();
+                loss.backward();
+                stats.grad_norm += self.adam.clip_grad_norm(c.max_grad_norm);
+                self.adam.step();
+                stats.policy_loss += f64::try_from(&surrogate.loss)?;
+                stats.value_loss += f64::try_from(&v_loss)?;
+                stats.entropy += f64::try_from(&entropy)?;
+                stats.approx_kl += f64::try_from(&surrogate.approx_kl)?;
+                stats.clip_fraction += f64::try_from(&surrogate.clip_fraction)?;
+                stats.samples_trained += idx.size()[0] as usize;
+                minibatches += 1;
+            }
+        }
+        let n = minibatches.max(1) as f64;
+        for field in [
+            &mut stats.policy_loss,
+            &mut stats.value_loss,
+            &mut stats.entropy,
+            &mut stats.approx_kl,
+            &mut stats.clip_fraction,
+            &mut stats.grad_norm,
+        ] {
+            *field /= n;
+        }
+        self.updates += 1;
+        Ok(stats)
+    }
+
+    fn state_tensors(&self) -> Vec<(String, Tensor)> {
+        let mut state = weights::var_store_tensors(&self.critic_store);
+        state.extend(self.adam.state("adam"));
+        state.push((
+            self.updates_key(),
+            Tensor::from_slice(&[self.updates as f32]),
+        ));
+        state
+    }
+
+    fn restore(&mut self, policy_blob: &[u8], state: &mut Decoded) -> Result<(), WeightsError> {
+        self.policy.load_bytes(policy_blob)?;
+        weights::load_var_store(&self.critic_store, state)?;
+        self.adam.load_state("adam", state)?;
+        let updates = state.take(&self.updates_key(), &[1])?.sum(Kind::Float);
+        self.updates = f64::try_from(updates)? as u64;
+        Ok(())
+    }
+}
+
+/// Fixtures for the algorithms' tests: a fragment with a known neighbourhood and a checkpoint
+/// round trip.
+#[cfg(test)]
+pub(crate) mod testing {
+    use super::*;
+    use crate::algo::batch::NormalizedFragment;
+
+    /// 2 steps × 6 slots, obs_dim = action_dim = 2, all alive except slot 5 at t = 1 (done at
+    /// t = 0). obs(t, s) = [s + 1, 10t + 1]; action(t, s) = [0.1(s + 1), 0.5 − t];
+    /// bootstrap_obs(s) = [100 + s, 7]. Neighbours, nearest first:
+    /// t = 0: 0 → [5, 4, 3, 2, 1]; 2 → [0]; 3 → [4, 2]; the rest none.
+    /// t = 1: 0 → [5, 1] (5 is empty then); 3 → [4]; the rest none.
+    pub fn neighbourhood_fragment() -> RolloutFragment {
+        let (steps, agents) = (2, 6);
+        let cells = steps * agents;
+        let mut obs = Vec::new();
+        let mut actions = Vec::new();
+        for t in 0..steps {
+            for s in 0..agents {
+                obs.extend([s as f32 + 1.0, 10.0 * t as f32 + 1.0]);
+                actions.extend([0.1 * (s as f32 + 1.0), 0.5 - t as f32]);
+            }
+        }
+        let mut alive = vec![true; cells];
+        alive[agents + 5] = false;
+        let mut dones = vec![false; cells];
+        dones[5] = true;
+        let lists: [&[u32]; 12] = [
+            &[5, 4, 3, 2, 1],
+            &[],
+            &[0],
+            &[4, 2],
+            &[],
+            &[],
+            &[5, 1],
+            &[],
+            &[],
+            &[4],
+            &[],
+            &[],
+        ];
+        let mut neighbour_offsets = vec![0u32];
+        let mut neighbour_ids = Vec::new();
+        for list in lists {
+            neighbour_ids.extend_from_slice(list);
+            neighbour_offsets.push(neighbour_ids.len() as u32);
+        }
+        RolloutFragment {
+            steps,
+            agents,
+            obs_dim: 2,
+            action_dim: 2,
+            obs,
+            actions,
+            log_probs: vec![-2.0; cells],
+            rewards: (0..cells).map(|i| (i % 3) as f32 - 0.5).collect(),
+            costs: vec![0.0; cells],
+            dones,
+            alive,
+            bootstrap_obs: (0..agents).flat_map(|s| [100.0 + s as f32, 7.0]).collect(),
+            neighbour_offsets,
+            neighbour_ids,
+            ..RolloutFragment::default()
+        }
+    }
+
+    /// `raw` as if the normaliser were the identity, so expected rows can be hand-computed.
+    pub fn unnormalized(raw: &RolloutFragment) -> NormalizedFragment<'_> {
+        NormalizedFragment {
+            raw,
+            obs: raw.obs.clone(),
+            bootstrap_obs: raw.bootstrap_obs.clone(),
+        }
+    }
+
+    /// The critic row of `slot` at `t` (own = its observation there) and its bootstrap row.
+    pub fn rows(
+        input: &impl CriticInput,
+        f: &NormalizedFragment,
+        t: usize,
+        slot: usize,
+    ) -> Vec<f32> {
+        let mut out = Vec::new();
+        input.row(f, f.obs(t, slot), t, slot, &mut out);
+        out
+    }
+
+    /// Equal up to float rounding, with both sides shown on failure.
+    pub fn close(got: &[f32], expected: &[f32]) {
+        assert_eq!(got.len(), expected.len(), "{got:?}");
+        for (g, e) in got.iter().zip(expected) {
+            assert!((g - e).abs() < 1e-6, "got {got:?}, expected {expected:?}");
+        }
+    }
+
+    fn host_state(algo: &dyn Algorithm) -> Vec<(String, Vec<f32>)> {
+        algo.state_tensors()
+            .into_iter()
+            .map(|(n, t)| (n, Vec::<f32>::try_from(t.flatten(0, -1)).unwrap()))
+            .collect()
+    }
+
+    /// A learner restored from another's checkpoint holds the same state and, given the same
+    /// fragment, makes the same next update (policy, critic and Adam moments alike).
+    pub fn assert_checkpoint_round_trip<A: Algorithm>(make: impl Fn() -> A) {
+        tch::manual_seed(3);
+        let fragment = neighbourhood_fragment();
+        let mut a = make();
+        a.update(std::slice::from_ref(&fragment)).unwrap();
+        let state = a.state_tensors();
+        let refs: Vec<(String, &Tensor)> = state.iter().map(|(n, t)| (n.clone(), t)).collect();
+        let bytes = weights::encode(&refs, Default::default()).unwrap();
+        let mut b = make();
+        b.restore(
+            &a.policy().to_bytes(1).unwrap(),
+            &mut Decoded::decode(&bytes).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(host_state(&a), host_state(&b), "restored state");
+        a.update(std::slice::from_ref(&fragment)).unwrap();
+        b.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!(
+            a.policy().to_bytes(2).unwrap(),
+            b.policy().to_bytes(2).unwrap(),
+            "policy after the next update"
+        );
+        assert_eq!(
+            host_state(&a),
+            host_state(&b),
+            "state after the next update"
+        );
+    }
+}
