@@ -50,6 +50,7 @@ pub struct RunConfig {
     pub rollout: RolloutConfig,
     pub ppo: PpoConfig,
     pub ccppo: CcppoConfig,
+    pub lcf: LcfConfig,
     pub learner: LearnerSection,
     pub curriculum: CurriculumConfig,
     pub server: ServerSection,
@@ -245,6 +246,15 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
 }
 
+/// A fixed local coordination factor for every PPO algorithm (paper §3.2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LcfConfig {
+    pub phi_deg: f32,
+    pub alpha: f32,
+    pub beta: f32,
+}
+
 /// The centralised-critic baselines' own settings (`ccppo-concat`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -400,6 +410,11 @@ impl RunConfig {
         }
         if p.hidden.is_empty() || p.hidden.iter().any(|&h| h <= 0) {
             problems.push("ppo.hidden must list at least one positive layer size".to_string());
+        }
+        let lcf = &self.lcf;
+        if !(-90.0..=90.0).contains(&lcf.phi_deg) || !lcf.alpha.is_finite() || !lcf.beta.is_finite()
+        {
+            problems.push("lcf.phi_deg must be in [-90, 90] and lcf.alpha, lcf.beta finite".into());
         }
         if self.ccppo.neighbours == 0 {
             problems.push("ccppo.neighbours must be > 0".to_string());

@@ -11,6 +11,8 @@
 //! | 3 | mean relative speed ‖v_j − v_i‖ | / (2 · 80 km/h) |
 //! | 4 | mean closing speed −d‖p_j − p_i‖/dt (+ = approaching) | (c / (2 · 80 km/h) + 1) / 2 (½ when alone) |
 
+use std::borrow::Cow;
+
 use crate::fragment::RolloutFragment;
 
 /// Values per agent and step.
@@ -29,6 +31,26 @@ pub fn coordinated_reward(
     beta: f32,
 ) -> f32 {
     alpha * phi_rad.cos() * own + beta * phi_rad.sin() * neighbourhood
+}
+
+/// The reward each cell of `fragment` trains on under a fixed LCF angle (radians): the
+/// fragment's own rewards when the coordination changes nothing (φ = 0, α = 1).
+pub fn coordinated_rewards(
+    fragment: &RolloutFragment,
+    phi_rad: f32,
+    alpha: f32,
+    beta: f32,
+) -> Cow<'_, [f32]> {
+    if phi_rad == 0.0 && alpha == 1.0 {
+        return Cow::Borrowed(&fragment.rewards);
+    }
+    let neighbourhood = neighbourhood_rewards(fragment);
+    fragment
+        .rewards
+        .iter()
+        .zip(neighbourhood)
+        .map(|(&own, n)| coordinated_reward(own, n, phi_rad, alpha, beta))
+        .collect()
 }
 
 /// r_N per (step, slot) of a fragment: the mean reward of the neighbours at that step (0 when
@@ -133,6 +155,16 @@ mod tests {
             neighbourhood_rewards(&fragment),
             vec![4.0, 1.0, 0.0, 5.0, 0.0, 0.0]
         );
+        // φ = 0, α = 1 trains on the own rewards untouched; φ = 90° on the neighbourhood's.
+        assert!(matches!(
+            coordinated_rewards(&fragment, 0.0, 1.0, 1.0),
+            Cow::Borrowed(r) if r == fragment.rewards.as_slice()
+        ));
+        let cooperative = coordinated_rewards(&fragment, FRAC_PI_2, 1.0, 1.0);
+        let expected = [4.0, 1.0, 0.0, 5.0, 0.0, 0.0];
+        for (got, want) in cooperative.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-5, "{cooperative:?}");
+        }
     }
 
     fn car(x: f32, y: f32, vx: f32, vy: f32) -> Motion {

@@ -1,6 +1,8 @@
 //! From fragments to a flat training batch, and minibatch order: written once for every
 //! on-policy algorithm.
 
+use std::borrow::Cow;
+
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Tensor};
@@ -98,10 +100,11 @@ fn normalized(
 
 /// Builds the critic rows of every alive cell and of every bootstrap observation with `input`
 /// (from observations passed through `normalize`), evaluates `value_of` (rows → values [m]) on
-/// all of them in one pass, then runs GAE per fragment.
+/// all of them in one pass, then runs GAE per fragment on the rewards `rewards_of` gives it.
 pub fn assemble(
     fragments: &[RolloutFragment],
     input: &impl CriticInput,
+    rewards_of: impl for<'f> Fn(&'f RolloutFragment) -> Cow<'f, [f32]>,
     normalize: impl Fn(&Tensor) -> Tensor,
     value_of: impl Fn(&Tensor) -> Tensor,
     gamma: f32,
@@ -171,6 +174,7 @@ pub fn assemble(
                 }
             })
             .collect();
+        let rewards = rewards_of(f);
         let Estimates {
             advantages: adv,
             returns: ret,
@@ -178,7 +182,7 @@ pub fn assemble(
             &Trajectories {
                 steps: f.steps,
                 agents: f.agents,
-                rewards: &f.rewards,
+                rewards: &rewards,
                 dones: &f.dones,
                 alive: &f.alive,
                 values: &cell_values,

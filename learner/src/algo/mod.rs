@@ -83,22 +83,24 @@ pub trait Algorithm {
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
 pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
     let (ppo, obs_dim, seed) = (&config.ppo, config.scenario.obs_dim(), config.run.seed);
+    let lcf = &config.lcf;
+    let ippo = || ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed).with_coordination(lcf);
     match config.learner.algo {
-        AlgoKind::Ippo => Box::new(ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed)),
-        AlgoKind::Cl => Box::new(cl::Cl::new(
-            ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed),
-            cl::Curriculum::new(&config.curriculum),
-        )),
-        AlgoKind::CcppoMf => Box::new(ccppo_mf::CcppoMf::new(
-            ppo, obs_dim, ACTION_DIM, device, seed,
-        )),
-        AlgoKind::CcppoConcat => Box::new(ccppo_concat::CcppoConcat::new(
-            ppo,
-            config.ccppo.neighbours,
-            obs_dim,
-            ACTION_DIM,
-            device,
-            seed,
-        )),
+        AlgoKind::Ippo => Box::new(ippo()),
+        AlgoKind::Cl => Box::new(cl::Cl::new(ippo(), cl::Curriculum::new(&config.curriculum))),
+        AlgoKind::CcppoMf => Box::new(
+            ccppo_mf::CcppoMf::new(ppo, obs_dim, ACTION_DIM, device, seed).with_coordination(lcf),
+        ),
+        AlgoKind::CcppoConcat => Box::new(
+            ccppo_concat::CcppoConcat::new(
+                ppo,
+                config.ccppo.neighbours,
+                obs_dim,
+                ACTION_DIM,
+                device,
+                seed,
+            )
+            .with_coordination(lcf),
+        ),
     }
 }

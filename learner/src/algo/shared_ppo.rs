@@ -6,7 +6,8 @@
 //! for each update:
 //!     fold the batch's observations into the running normaliser
 //!     x ← critic_input(normalised obs, neighbourhoods); V ← critic(x)
-//!     A, R ← GAE(rewards, V, γ, λ) per agent
+//!     r ← α·cos φ·r_i + β·sin φ·r_N (fixed LCF, `[lcf]`; φ = 0: own reward)
+//!     A, R ← GAE(r, V, γ, λ) per agent
 //!     repeat `epochs` times, over shuffled minibatches:
 //!         ρ = π(a|s) / π_behaviour(a|s)
 //!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·L_V(V(x), R) − c_e·H[π]
@@ -18,8 +19,9 @@ use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::PpoConfig;
+use junction_common::config::{LcfConfig, PpoConfig};
 use junction_common::fragment::RolloutFragment;
+use junction_common::lcf;
 use junction_common::policy::{GaussianPolicy, Mlp, gaussian_entropy, gaussian_log_prob};
 use junction_common::weights::{self, Decoded, WeightsError};
 
@@ -35,6 +37,8 @@ pub struct SharedPpo<C> {
     name: &'static str,
     critic_input: C,
     config: PpoConfig,
+    /// The fixed LCF the rewards are coordinated with (φ = 0: the agents' own rewards).
+    coordination: LcfConfig,
     policy: GaussianPolicy,
     critic_store: nn::VarStore,
     critic: Mlp,
@@ -75,6 +79,11 @@ impl<C: CriticInput> SharedPpo<C> {
             name,
             critic_input,
             config: config.clone(),
+            coordination: LcfConfig {
+                phi_deg: 0.0,
+                alpha: 1.0,
+                beta: 1.0,
+            },
             policy,
             critic_store,
             critic,
@@ -82,6 +91,12 @@ impl<C: CriticInput> SharedPpo<C> {
             seed,
             updates: 0,
         }
+    }
+
+    /// Trains on coordinated rewards r_C = α·cos φ·r_i + β·sin φ·r_N (`[lcf]`).
+    pub fn with_coordination(mut self, lcf: &LcfConfig) -> Self {
+        self.coordination = lcf.clone();
+        self
     }
 
     fn value(&self, critic_inputs: &Tensor) -> Tensor {
@@ -112,9 +127,12 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             self.policy.set_obs_stats(&stats);
         }
         let device = self.policy.device();
+        let lcf = &self.coordination;
+        let phi = lcf.phi_deg.to_radians();
         let batch = assemble(
             fragments,
             &self.critic_input,
+            |f| lcf::coordinated_rewards(f, phi, lcf.alpha, lcf.beta),
             |obs| self.policy.normalize(obs),
             |x| self.value(x),
             c.gamma,
@@ -130,6 +148,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             agent_steps: batch.len,
             explained_variance: explained_variance(&batch.old_values, &batch.returns),
             learning_rate: self.adam.learning_rate(),
+            lcf_mean_deg: f64::from(lcf.phi_deg),
             ..UpdateStats::default()
         };
         let mut minibatches = 0usize;
@@ -307,7 +326,7 @@ pub(crate) mod testing {
         }
     }
 
-    fn host_state(algo: &dyn Algorithm) -> Vec<(String, Vec<f32>)> {
+    pub fn host_state(algo: &dyn Algorithm) -> Vec<(String, Vec<f32>)> {
         algo.state_tensors()
             .into_iter()
             .map(|(n, t)| (n, Vec::<f32>::try_from(t.flatten(0, -1)).unwrap()))
@@ -343,5 +362,48 @@ pub(crate) mod testing {
             host_state(&b),
             "state after the next update"
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testing::{host_state, neighbourhood_fragment};
+    use super::*;
+    use crate::algo::ippo::Ippo;
+    use junction_common::config::RunConfig;
+
+    fn learner(lcf: &LcfConfig) -> Ippo {
+        tch::manual_seed(5);
+        let mut config = RunConfig::default().ppo;
+        config.hidden = vec![8];
+        Ippo::new(&config, 2, 2, Device::Cpu, 3).with_coordination(lcf)
+    }
+
+    #[test]
+    fn a_zero_lcf_is_ippo_and_a_cooperative_one_trains_on_other_rewards() {
+        let fragment = neighbourhood_fragment();
+        let lcf = |phi_deg| LcfConfig {
+            phi_deg,
+            alpha: 1.0,
+            beta: 1.0,
+        };
+        let mut plain = learner(&lcf(0.0));
+        let mut cooperative = learner(&lcf(90.0));
+        let plain_stats = plain.update(std::slice::from_ref(&fragment)).unwrap();
+        let cooperative_stats = cooperative.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!(
+            (plain_stats.lcf_mean_deg, cooperative_stats.lcf_mean_deg),
+            (0.0, 90.0)
+        );
+
+        // φ = 0 is exactly IPPO without coordination configured.
+        tch::manual_seed(5);
+        let mut config = RunConfig::default().ppo;
+        config.hidden = vec![8];
+        let mut ippo = Ippo::new(&config, 2, 2, Device::Cpu, 3);
+        ippo.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!(host_state(&plain), host_state(&ippo));
+        // φ = 90° learns from the neighbours' rewards: another value function.
+        assert_ne!(host_state(&plain), host_state(&cooperative));
     }
 }
