@@ -11,7 +11,7 @@ use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use junction_tests::{TempDir, bin};
+use junction_tests::{TempDir, bin, workspace_root};
 use serde_json::Value;
 
 /// Kubernetes versions the manifests are validated against: an old and the newest schema set
@@ -27,19 +27,12 @@ const K8S_MANIFESTS: [&str; 5] = [
     "actor-deployment.yaml",
 ];
 
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("workspace root")
-        .to_path_buf()
-}
-
 fn deploy(relative: &str) -> PathBuf {
-    root().join("deploy").join(relative)
+    workspace_root().join("deploy").join(relative)
 }
 
 fn venv_tool(name: &str) -> PathBuf {
-    let path = root().join(".venv/bin").join(name);
+    let path = workspace_root().join(".venv/bin").join(name);
     assert!(
         path.exists(),
         "{} is missing: run scripts/setup.sh",
@@ -255,7 +248,7 @@ fn every_alert_has_a_severity_a_summary_a_description_and_unit_tests() {
 #[test]
 fn alerts_use_only_exported_metric_names() {
     let rules = std::fs::read_to_string(deploy("prometheus/alerts.yml")).expect("read rules");
-    let telemetry = std::fs::read_to_string(root().join("common/src/telemetry.rs"))
+    let telemetry = std::fs::read_to_string(workspace_root().join("common/src/telemetry.rs"))
         .expect("read common/src/telemetry.rs");
     let mut names = Vec::new();
     for (start, _) in rules.match_indices("junction_") {

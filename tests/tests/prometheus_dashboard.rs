@@ -5,25 +5,18 @@
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use junction_tests::{
     Process, QUICK_RUN, TempDir, free_port, http_get, metric_sum, scrape, start_actor,
-    start_learner, wait_until,
+    start_learner, wait_until, workspace_root,
 };
 
 /// What Grafana would put in for the dashboard's variables.
 const RATE_INTERVAL: &str = "20s";
 const ALL_SCENARIOS: &str = ".+";
-
-fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("workspace root")
-        .to_path_buf()
-}
 
 /// Percent-encodes a query-string value (RFC 3986 unreserved characters pass).
 fn url_encode(value: &str) -> String {
