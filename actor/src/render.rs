@@ -690,6 +690,7 @@ mod tests {
                 max_abs_accel: 0.0,
                 collisions: 0,
                 energy_kj: 0.0,
+                total_cost: 0.0,
             },
             vehicle,
         };

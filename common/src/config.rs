@@ -51,6 +51,7 @@ pub struct RunConfig {
     pub ppo: PpoConfig,
     pub ccppo: CcppoConfig,
     pub lcf: LcfConfig,
+    pub safety: SafetyConfig,
     pub learner: LearnerSection,
     pub curriculum: CurriculumConfig,
     pub server: ServerSection,
@@ -246,6 +247,23 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
 }
 
+/// Safe RL for every PPO algorithm: a cost critic and a Lagrange multiplier on the episode cost.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SafetyConfig {
+    pub mode: SafetyMode,
+    pub cost_limit: f32,
+    pub multiplier_lr: f32,
+    pub initial_multiplier: f32,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SafetyMode {
+    Off,
+    Lagrangian,
+}
+
 /// A fixed local coordination factor for every PPO algorithm (paper §3.2).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -410,6 +428,16 @@ impl RunConfig {
         }
         if p.hidden.is_empty() || p.hidden.iter().any(|&h| h <= 0) {
             problems.push("ppo.hidden must list at least one positive layer size".to_string());
+        }
+        let safety = &self.safety;
+        if !(safety.cost_limit >= 0.0)
+            || !(safety.multiplier_lr >= 0.0)
+            || !(safety.initial_multiplier >= 0.0)
+        {
+            problems.push(
+                "safety.cost_limit, safety.multiplier_lr and safety.initial_multiplier must be >= 0"
+                    .into(),
+            );
         }
         let lcf = &self.lcf;
         if !(-90.0..=90.0).contains(&lcf.phi_deg) || !lcf.alpha.is_finite() || !lcf.beta.is_finite()

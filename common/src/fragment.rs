@@ -63,6 +63,8 @@ pub struct EpisodeStats {
     pub max_abs_accel: f32,
     pub collisions: u32,
     pub energy_kj: f32,
+    /// Sum of the episode's per-step costs (what a cost limit constrains).
+    pub total_cost: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -113,6 +115,7 @@ impl EpisodeStats {
                     max_abs_accel: e.max_abs_accel,
                     collisions: e.collisions,
                     energy_kj: e.energy_kj,
+                    total_cost: e.total_cost,
                 })
             })
             .collect()
@@ -127,6 +130,7 @@ impl EpisodeStats {
             max_abs_accel: self.max_abs_accel,
             collisions: self.collisions,
             energy_kj: self.energy_kj,
+            total_cost: self.total_cost,
         }
     }
 }
@@ -326,6 +330,7 @@ impl RolloutFragment {
                     e.mean_abs_accel,
                     e.max_abs_accel,
                     e.energy_kj,
+                    e.total_cost,
                 ];
                 if values.iter().any(|v| !v.is_finite()) {
                     return Err(FragmentError::NonFinite { field, index });
@@ -469,6 +474,7 @@ pub(crate) mod tests {
                 max_abs_accel: 1.9,
                 collisions: 0,
                 energy_kj: 12.5,
+                total_cost: 0.125,
             }],
             human_episodes: vec![EpisodeStats {
                 outcome: Outcome::Crash,
@@ -478,6 +484,7 @@ pub(crate) mod tests {
                 max_abs_accel: 2.5,
                 collisions: 1,
                 energy_kj: 3.0,
+                total_cost: 0.0,
             }],
             sim_seconds: 0.3,
         }

@@ -38,6 +38,7 @@ pub mod names {
     pub const LEARNER_SIMULATED_SECONDS: &str = "junction_learner_simulated_seconds_total";
     pub const LEARNER_POLICY_LAG: &str = "junction_learner_policy_lag_versions";
     pub const LEARNER_LEARNING_RATE: &str = "junction_learner_learning_rate";
+    pub const LEARNER_LAGRANGE_MULTIPLIER: &str = "junction_learner_lagrange_multiplier";
     pub const LEARNER_LCF_MEAN: &str = "junction_learner_lcf_mean_degrees";
     pub const LEARNER_LCF_STD: &str = "junction_learner_lcf_std_degrees";
     pub const LEARNER_NONFINITE_MINIBATCHES: &str =

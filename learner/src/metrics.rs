@@ -50,6 +50,7 @@ pub struct LearnerMetrics {
     learning_rate: Gauge,
     lcf_mean: Gauge,
     lcf_std: Gauge,
+    lagrange_multiplier: Gauge,
     nonfinite_minibatches: IntCounter,
     policy_loss: Gauge,
     value_loss: Gauge,
@@ -218,6 +219,10 @@ impl LearnerMetrics {
                 names::LEARNER_LEARNING_RATE,
                 "Optimiser step size of the last update.",
             )?,
+            lagrange_multiplier: gauge(
+                names::LEARNER_LAGRANGE_MULTIPLIER,
+                "PPO-Lagrangian's price of cost after the last update ([safety]; 0 when off).",
+            )?,
             lcf_mean: gauge(
                 names::LEARNER_LCF_MEAN,
                 "Mean LCF angle phi over the last batch, degrees (0 = selfish, 90 = fully cooperative).",
@@ -309,6 +314,7 @@ impl LearnerMetrics {
         self.updates.inc();
         self.learning_rate.set(stats.learning_rate);
         self.lcf_mean.set(stats.lcf_mean_deg);
+        self.lagrange_multiplier.set(stats.lagrange_multiplier);
         self.lcf_std.set(stats.lcf_std_deg);
         self.nonfinite_minibatches
             .inc_by(stats.skipped_minibatches as u64);

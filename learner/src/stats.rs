@@ -94,6 +94,7 @@ mod tests {
             max_abs_accel: length as f32 / 10.0,
             collisions: 0,
             energy_kj: 0.0,
+            total_cost: 0.0,
         }
     }
 

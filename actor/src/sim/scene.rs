@@ -47,6 +47,7 @@ pub(super) struct Car {
     max_abs_accel: f32,
     collisions: u32,
     energy_kj: f32,
+    total_cost: f32,
 }
 
 /// A crashed car left on the road for a while.
@@ -354,6 +355,7 @@ impl Scene {
             }
             car.energy_kj += facts.energy_kj;
             car.total_reward += r;
+            car.total_cost += self.result.costs.get(slot).copied().unwrap_or(0.0);
             let accel = self.accel[slot].abs();
             car.abs_accel_sum += accel;
             car.max_abs_accel = car.max_abs_accel.max(accel);
@@ -366,6 +368,7 @@ impl Scene {
                     max_abs_accel: car.max_abs_accel,
                     collisions: car.collisions,
                     energy_kj: car.energy_kj,
+                    total_cost: car.total_cost,
                 };
                 if human {
                     self.result.human_finished.push(stats);
@@ -474,6 +477,7 @@ impl Scene {
             max_abs_accel: 0.0,
             collisions: 0,
             energy_kj: 0.0,
+            total_cost: 0.0,
         };
         track_route(&mut car, self.network.as_ref());
         car

@@ -135,6 +135,10 @@ fn energy_cost_adds_up_to_the_episode_energy() {
         "summed cost {cost} vs β2 · {} kJ",
         stats.energy_kj
     );
+    assert!(
+        (stats.total_cost - cost).abs() < 1e-5,
+        "the episode sums its costs"
+    );
 }
 
 #[test]

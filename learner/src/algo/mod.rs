@@ -8,6 +8,7 @@ pub mod cl;
 pub mod gae;
 pub mod ippo;
 pub mod ppo;
+pub mod safety;
 pub mod shared_ppo;
 
 use tch::{Device, Tensor};
@@ -36,6 +37,8 @@ pub struct UpdateStats {
     /// methods without coordination: φ = 0 is IPPO).
     pub lcf_mean_deg: f64,
     pub lcf_std_deg: f64,
+    /// The safety option's Lagrange multiplier after the update (0 when off).
+    pub lagrange_multiplier: f64,
     /// Minibatches skipped because their loss was NaN or infinite.
     pub skipped_minibatches: usize,
 }
@@ -83,13 +86,19 @@ pub trait Algorithm {
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
 pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
     let (ppo, obs_dim, seed) = (&config.ppo, config.scenario.obs_dim(), config.run.seed);
-    let lcf = &config.lcf;
-    let ippo = || ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed).with_coordination(lcf);
+    let (lcf, safety) = (&config.lcf, &config.safety);
+    let ippo = || {
+        ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed)
+            .with_coordination(lcf)
+            .with_safety(safety)
+    };
     match config.learner.algo {
         AlgoKind::Ippo => Box::new(ippo()),
         AlgoKind::Cl => Box::new(cl::Cl::new(ippo(), cl::Curriculum::new(&config.curriculum))),
         AlgoKind::CcppoMf => Box::new(
-            ccppo_mf::CcppoMf::new(ppo, obs_dim, ACTION_DIM, device, seed).with_coordination(lcf),
+            ccppo_mf::CcppoMf::new(ppo, obs_dim, ACTION_DIM, device, seed)
+                .with_coordination(lcf)
+                .with_safety(safety),
         ),
         AlgoKind::CcppoConcat => Box::new(
             ccppo_concat::CcppoConcat::new(
@@ -100,7 +109,8 @@ pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
                 device,
                 seed,
             )
-            .with_coordination(lcf),
+            .with_coordination(lcf)
+            .with_safety(safety),
         ),
     }
 }

@@ -11,15 +11,18 @@
 //!     repeat `epochs` times, over shuffled minibatches:
 //!         ρ = π(a|s) / π_behaviour(a|s)
 //!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·L_V(V(x), R) − c_e·H[π]
+//!         (with `[safety]`: Â mixes in the cost advantage and L the cost critic, safety.rs)
 //!         Adam step on ∇L, gradient norm clipped
 //! ```
+
+use std::borrow::Cow;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{LcfConfig, PpoConfig};
+use junction_common::config::{LcfConfig, PpoConfig, SafetyConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::policy::{GaussianPolicy, Mlp, gaussian_entropy, gaussian_log_prob};
@@ -29,8 +32,12 @@ use super::batch::{
     CriticInput, alive_observations, assemble, epoch_minibatches, explained_variance, standardize,
 };
 use super::ppo::{clipped_surrogate, value_loss};
+use super::safety::Lagrangian;
 use super::{AlgoError, Algorithm, UpdateStats};
 use crate::optim::Adam;
+
+/// Checkpoint key of the Lagrange multiplier.
+const SAFETY_MULTIPLIER: &str = "safety.multiplier";
 
 pub struct SharedPpo<C> {
     /// `learner.algo` value; also prefixes the checkpointed update count.
@@ -39,6 +46,9 @@ pub struct SharedPpo<C> {
     config: PpoConfig,
     /// The fixed LCF the rewards are coordinated with (φ = 0: the agents' own rewards).
     coordination: LcfConfig,
+    /// PPO-Lagrangian's cost critic and multiplier, when `[safety] mode = "lagrangian"`.
+    safety: Option<Lagrangian>,
+    critic_width: i64,
     policy: GaussianPolicy,
     critic_store: nn::VarStore,
     critic: Mlp,
@@ -65,9 +75,10 @@ impl<C: CriticInput> SharedPpo<C> {
             config.init_log_std,
         );
         let critic_store = nn::VarStore::new(device);
+        let critic_width = critic_input.width(obs_dim, action_dim) as i64;
         let critic = Mlp::new(
             critic_store.root() / "critic",
-            critic_input.width(obs_dim, action_dim) as i64,
+            critic_width,
             &config.hidden,
             1,
             1.0,
@@ -84,6 +95,8 @@ impl<C: CriticInput> SharedPpo<C> {
                 alpha: 1.0,
                 beta: 1.0,
             },
+            safety: None,
+            critic_width,
             policy,
             critic_store,
             critic,
@@ -96,6 +109,23 @@ impl<C: CriticInput> SharedPpo<C> {
     /// Trains on coordinated rewards r_C = α·cos φ·r_i + β·sin φ·r_N (`[lcf]`).
     pub fn with_coordination(mut self, lcf: &LcfConfig) -> Self {
         self.coordination = lcf.clone();
+        self
+    }
+
+    /// Adds PPO-Lagrangian's cost critic and multiplier (`[safety]`); before any update.
+    pub fn with_safety(mut self, config: &SafetyConfig) -> Self {
+        if config.mode == SafetyMode::Lagrangian {
+            self.safety = Some(Lagrangian::new(
+                config,
+                self.critic_store.root() / "cost_critic",
+                self.critic_width,
+                &self.config.hidden,
+            ));
+            // The optimiser now also steps the cost critic.
+            let mut params = self.policy.trainable();
+            params.extend(self.critic_store.trainable_variables());
+            self.adam = Adam::new(params, self.config.learning_rate, self.config.adam_eps);
+        }
         self
     }
 
@@ -142,6 +172,20 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         if batch.len == 0 {
             return Err(AlgoError::EmptyBatch);
         }
+        // The cost side of PPO-Lagrangian: the same cells, the costs, the cost critic.
+        let cost_batch = match &self.safety {
+            Some(safety) => Some(assemble(
+                fragments,
+                &self.critic_input,
+                |f| Cow::Borrowed(f.costs.as_slice()),
+                |obs| self.policy.normalize(obs),
+                |x| safety.cost_value(x),
+                c.gamma,
+                c.gae_lambda,
+                device,
+            )?),
+            None => None,
+        };
         let mut rng =
             ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let mut stats = UpdateStats {
@@ -156,11 +200,25 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             for idx in epoch_minibatches(batch.len, c.minibatch_size, &mut rng, device) {
                 let obs = self.policy.normalize(&batch.obs.index_select(0, &idx));
                 let advantages = batch.advantages.index_select(0, &idx);
-                let advantages = if c.normalize_advantages {
-                    standardize(&advantages)
-                } else {
-                    advantages
+                let scale = |a: Tensor| {
+                    if c.normalize_advantages {
+                        standardize(&a)
+                    } else {
+                        a
+                    }
                 };
+                let mut advantages = scale(advantages);
+                let mut cost_v_loss = Tensor::zeros([], (Kind::Float, device));
+                if let (Some(safety), Some(costs)) = (&self.safety, &cost_batch) {
+                    let cost_advantages = scale(costs.advantages.index_select(0, &idx));
+                    advantages = safety.mixed_advantage(&advantages, &cost_advantages);
+                    cost_v_loss = value_loss(
+                        &safety.cost_value(&costs.critic_inputs.index_select(0, &idx)),
+                        &costs.old_values.index_select(0, &idx),
+                        &costs.returns.index_select(0, &idx),
+                        c.value_clip,
+                    );
+                }
                 let (mean, log_std) = self.policy.distribution(&obs);
                 let log_probs =
                     gaussian_log_prob(&mean, &log_std, &batch.actions.index_select(0, &idx));
@@ -177,7 +235,8 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                     c.value_clip,
                 );
                 let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
-                let loss = &surrogate.loss + &v_loss * c.value_coef - &entropy * c.entropy_coef;
+                let loss = &surrogate.loss + (&v_loss + &cost_v_loss) * c.value_coef
+                    - &entropy * c.entropy_coef;
                 let loss_value = f64::try_from(&loss)?;
                 if !loss_value.is_finite() {
                     stats.skipped_minibatches += 1;
@@ -207,6 +266,10 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         ] {
             *field /= n;
         }
+        if let Some(safety) = &mut self.safety {
+            safety.update_multiplier(fragments);
+            stats.lagrange_multiplier = safety.multiplier();
+        }
         self.updates += 1;
         Ok(stats)
     }
@@ -218,6 +281,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             self.updates_key(),
             Tensor::from_slice(&[self.updates as f32]),
         ));
+        if let Some(safety) = &self.safety {
+            state.push((SAFETY_MULTIPLIER.into(), safety.multiplier_tensor()));
+        }
         state
     }
 
@@ -227,6 +293,10 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         self.adam.load_state("adam", state)?;
         let updates = state.take(&self.updates_key(), &[1])?.sum(Kind::Float);
         self.updates = f64::try_from(updates)? as u64;
+        if let Some(safety) = &mut self.safety {
+            let multiplier = state.take(SAFETY_MULTIPLIER, &[1])?.sum(Kind::Float);
+            safety.set_multiplier(f64::try_from(multiplier)?);
+        }
         Ok(())
     }
 }
@@ -367,7 +437,7 @@ pub(crate) mod testing {
 
 #[cfg(test)]
 mod tests {
-    use super::testing::{host_state, neighbourhood_fragment};
+    use super::testing::{self, host_state, neighbourhood_fragment};
     use super::*;
     use crate::algo::ippo::Ippo;
     use junction_common::config::RunConfig;
@@ -377,6 +447,52 @@ mod tests {
         let mut config = RunConfig::default().ppo;
         config.hidden = vec![8];
         Ippo::new(&config, 2, 2, Device::Cpu, 3).with_coordination(lcf)
+    }
+
+    fn lagrangian_ippo() -> Ippo {
+        let mut safety = RunConfig::default().safety;
+        safety.mode = SafetyMode::Lagrangian;
+        safety.cost_limit = 0.5;
+        safety.multiplier_lr = 0.1;
+        learner(&RunConfig::default().lcf).with_safety(&safety)
+    }
+
+    #[test]
+    fn the_lagrangian_option_trains_a_cost_critic_prices_cost_and_checkpoints_it() {
+        let mut fragment = neighbourhood_fragment();
+        fragment.costs = (0..fragment.costs.len()).map(|i| (i % 2) as f32).collect();
+        fragment.episodes = vec![junction_common::fragment::EpisodeStats {
+            outcome: junction_common::fragment::Outcome::Crash,
+            length: 1,
+            total_reward: -5.0,
+            mean_abs_accel: 0.0,
+            max_abs_accel: 0.0,
+            collisions: 1,
+            energy_kj: 0.0,
+            total_cost: 2.5,
+        }];
+        let mut safe = lagrangian_ippo();
+        let names: Vec<String> = safe.state_tensors().into_iter().map(|(n, _)| n).collect();
+        assert!(
+            names.iter().any(|n| n.starts_with("cost_critic")),
+            "{names:?}"
+        );
+        let stats = safe.update(std::slice::from_ref(&fragment)).unwrap();
+        // λ = 0 + 0.1 · (2.5 − 0.5)
+        assert!((stats.lagrange_multiplier - 0.2).abs() < 1e-6);
+        // The cost changes what is learned: a learner without the option ends elsewhere.
+        let mut plain = learner(&RunConfig::default().lcf);
+        plain.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_ne!(
+            safe.policy().to_bytes(1).unwrap(),
+            plain.policy().to_bytes(1).unwrap()
+        );
+        // A learner restored mid-training (λ > 0) continues exactly.
+        testing::assert_checkpoint_round_trip(|| {
+            let mut learner = lagrangian_ippo();
+            learner.update(std::slice::from_ref(&fragment)).unwrap();
+            learner
+        });
     }
 
     #[test]
