@@ -243,6 +243,19 @@ pub fn start_actor(endpoints: &Endpoints, log_dir: &Path, name: &str, extra: &[&
     Process::start(name, &bin("actor"), &args, log_dir)
 }
 
+/// An actor with two scenes serving /metrics on a free loopback port; returns it and that
+/// address.
+pub fn start_actor_with_metrics(endpoints: &Endpoints, log_dir: &Path) -> (Process, String) {
+    let metrics = format!("127.0.0.1:{}", free_port());
+    let actor = start_actor(
+        endpoints,
+        log_dir,
+        "actor",
+        &["--scenes", "2", "--metrics-addr", &metrics],
+    );
+    (actor, metrics)
+}
+
 /// A loopback port that was free a moment ago.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")

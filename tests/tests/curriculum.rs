@@ -6,7 +6,7 @@
 use std::time::{Duration, Instant};
 
 use junction_tests::{
-    TempDir, free_port, metric_sum, scrape, start_actor, start_learner, wait_until,
+    TempDir, metric_sum, scrape, start_actor_with_metrics, start_learner, wait_until,
 };
 
 const STAGE: &str = "junction_learner_curriculum_stage";
@@ -61,13 +61,7 @@ fn curriculum_stages_advance_and_actors_follow_them() {
         (0.0, 2.0),
         "a fresh cl run starts in stage 0 with ¼ of 8 agents"
     );
-    let actor_metrics = format!("127.0.0.1:{}", free_port());
-    let mut actor = start_actor(
-        &endpoints,
-        dir.path(),
-        "actor",
-        &["--scenes", "2", "--metrics-addr", &actor_metrics],
-    );
+    let (mut actor, actor_metrics) = start_actor_with_metrics(&endpoints, dir.path());
 
     let advanced = wait_until(left().saturating_sub(Duration::from_secs(15)), || {
         metric_sum(&scrape(&endpoints.metrics), STAGE) >= 2.0

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use junction_tests::{
-    QUICK_RUN, TempDir, free_port, metric_sum, scrape, start_actor, start_learner, wait_until,
+    QUICK_RUN, TempDir, metric_sum, scrape, start_actor_with_metrics, start_learner, wait_until,
 };
 
 #[test]
@@ -16,13 +16,7 @@ fn learner_and_actor_train_over_grpc_and_shut_down_cleanly() {
         dir.path(),
         &[&["--max-seconds", "300"], QUICK_RUN].concat(),
     );
-    let actor_metrics = format!("127.0.0.1:{}", free_port());
-    let mut actor = start_actor(
-        &endpoints,
-        dir.path(),
-        "actor",
-        &["--scenes", "2", "--metrics-addr", &actor_metrics],
-    );
+    let (mut actor, actor_metrics) = start_actor_with_metrics(&endpoints, dir.path());
 
     let published = wait_until(Duration::from_secs(180), || {
         let m = scrape(&endpoints.metrics);

@@ -10,7 +10,7 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use junction_tests::{
-    Process, QUICK_RUN, TempDir, free_port, http_get, metric_sum, scrape, start_actor,
+    Process, QUICK_RUN, TempDir, free_port, http_get, metric_sum, scrape, start_actor_with_metrics,
     start_learner, wait_until, workspace_root,
 };
 
@@ -125,13 +125,7 @@ fn every_dashboard_panel_returns_data_from_a_real_prometheus() {
         dir.path(),
         &[&["--max-seconds", "240"], QUICK_RUN].concat(),
     );
-    let actor_metrics = format!("127.0.0.1:{}", free_port());
-    let actor = start_actor(
-        &endpoints,
-        dir.path(),
-        "actor",
-        &["--scenes", "2", "--metrics-addr", &actor_metrics],
-    );
+    let (actor, actor_metrics) = start_actor_with_metrics(&endpoints, dir.path());
 
     let prometheus_addr = format!("127.0.0.1:{}", free_port());
     let config = dir.path().join("prometheus.yml");
