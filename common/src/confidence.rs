@@ -257,7 +257,10 @@ mod tests {
         // At 0 of n the interval starts at 0 and still has width: [0, z²/(n + z²)].
         let zero = wilson(0, 20);
         assert_eq!(zero.low, Some(0.0));
-        assert!(close(zero.high.unwrap(), 3.8415 / 23.8415, 1e-4), "{zero:?}");
+        assert!(
+            close(zero.high.unwrap(), 3.8415 / 23.8415, 1e-4),
+            "{zero:?}"
+        );
         let all = wilson(20, 20);
         assert_eq!(all.high, Some(1.0));
         assert!(close(all.low.unwrap(), 20.0 / 23.8415, 1e-4), "{all:?}");

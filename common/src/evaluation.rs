@@ -51,7 +51,12 @@ pub const METRICS: [MetricDef; 13] = [
     metric("reward_max", "Env. reward (max)", "", true),
     metric("length_mean", "Episode length (mean)", "steps", false),
     metric("length_max", "Episode length (max)", "steps", false),
-    metric("successes_per_300", "Agents succeeding / 300 steps", "", true),
+    metric(
+        "successes_per_300",
+        "Agents succeeding / 300 steps",
+        "",
+        true,
+    ),
     metric("failures_per_300", "Agents failing / 300 steps", "", false),
 ];
 
@@ -108,7 +113,10 @@ impl EvalMetrics {
     }
 
     pub fn get(&self, key: &str) -> Option<&Estimate> {
-        self.rows().into_iter().find(|(m, _)| m.key == key).map(|(_, e)| e)
+        self.rows()
+            .into_iter()
+            .find(|(m, _)| m.key == key)
+            .map(|(_, e)| e)
     }
 }
 
@@ -140,7 +148,8 @@ impl EvalTally {
     pub fn metrics(&self, bootstrap_seed: u64) -> EvalMetrics {
         let n = self.episodes.len() as u64;
         let count = |o: Outcome| self.episodes.iter().filter(|e| e.outcome == o).count() as u64;
-        let field = |f: fn(&EpisodeStats) -> f64| -> Vec<f64> { self.episodes.iter().map(f).collect() };
+        let field =
+            |f: fn(&EpisodeStats) -> f64| -> Vec<f64> { self.episodes.iter().map(f).collect() };
         let successes = count(Outcome::Success);
         let blocks = self.scene_steps as f64 / COPO_STEP_BLOCK;
         let rewards = field(|e| f64::from(e.total_reward));
@@ -219,6 +228,82 @@ impl EvalReport {
     }
 }
 
+impl EvalReport {
+    /// The human-readable table `actor eval` prints.
+    pub fn to_table(&self) -> String {
+        let t = &self.training;
+        let trained = [
+            t.algorithm.clone(),
+            t.scenario.as_ref().map(|s| format!("trained on {s}")),
+            t.seed.map(|s| format!("seed {s}")),
+            t.agent_steps.map(|s| format!("{s} agent-steps")),
+        ]
+        .into_iter()
+        .flatten()
+        .collect::<Vec<_>>()
+        .join(", ");
+        let outcomes = self
+            .outcomes
+            .iter()
+            .map(|(k, v)| format!("{k} {v}"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        let mut out = format!(
+            "policy  {} (v{}{}{})\neval    {}, seed {}, {} scenes: {} episodes ({outcomes}) in {} \
+             scene steps ({:.0} s simulated)\n\n",
+            self.policy,
+            self.policy_version,
+            if trained.is_empty() { "" } else { ": " },
+            trained,
+            self.scenario,
+            self.seed,
+            self.scenes,
+            self.episodes,
+            self.scene_steps,
+            self.sim_seconds,
+        );
+        out.push_str(&format!(
+            "{:<40} {:>11}  {:<27} {}\n",
+            "metric", "value", "95 % CI", "CI method"
+        ));
+        for (def, e) in self.metrics.rows() {
+            let label = if def.unit.is_empty() {
+                def.label.to_string()
+            } else {
+                format!("{} ({})", def.label, def.unit)
+            };
+            let ci = match (e.low, e.high) {
+                (Some(low), Some(high)) => {
+                    format!("[{}, {}]", format_number(low), format_number(high))
+                }
+                _ => "(too few episodes)".to_string(),
+            };
+            out.push_str(&format!(
+                "{label:<40} {:>11}  {ci:<27} {}\n",
+                format_number(e.value),
+                e.ci.label()
+            ));
+        }
+        out
+    }
+}
+
+/// About four significant digits, plain notation below 100,000 (tables and plots).
+pub fn format_number(value: f64) -> String {
+    if !value.is_finite() {
+        return value.to_string();
+    }
+    if value == 0.0 {
+        return "0".to_string();
+    }
+    let magnitude = value.abs().log10().floor() as i32;
+    if magnitude >= 5 {
+        return format!("{value:.3e}");
+    }
+    let decimals = (3 - magnitude).clamp(0, 4) as usize;
+    format!("{value:.decimals$}")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -273,16 +358,34 @@ mod tests {
         assert_eq!(m.length_mean.ci, CiMethod::StudentT);
         // Reward sample s² = (100+400+225+144+9)/4 = 219.5; half = 2.77645·√(219.5/5).
         let half = m.reward_mean.half_width().unwrap();
-        assert!((half - 2.776_445 * (219.5f64 / 5.0).sqrt()).abs() < 1e-3, "{half}");
+        assert!(
+            (half - 2.776_445 * (219.5f64 / 5.0).sqrt()).abs() < 1e-3,
+            "{half}"
+        );
         assert_eq!((m.reward_max.value, m.length_max.value), (30.0, 200.0));
         assert_eq!(m.reward_max.ci, CiMethod::Bootstrap);
         // 600 scene steps = 2 blocks of 300: 2 successes → 1 per 300, 3 failures → 1.5.
         assert_eq!(m.successes_per_300.value, 1.0);
         assert_eq!(m.failures_per_300.value, 1.5);
-        assert_eq!(m, t.metrics(3), "seeded: the same tally gives the same metrics");
+        assert_eq!(
+            m,
+            t.metrics(3),
+            "seeded: the same tally gives the same metrics"
+        );
         let outcomes = t.outcomes();
         assert_eq!(outcomes["success"], 2);
         assert_eq!(outcomes.values().sum::<u64>(), 5);
+    }
+
+    #[test]
+    fn numbers_keep_four_significant_digits() {
+        assert_eq!(format_number(0.123456), "0.1235");
+        assert_eq!(format_number(0.0012345), "0.0012");
+        assert_eq!(format_number(3.14159), "3.142");
+        assert_eq!(format_number(-27166.4), "-27166");
+        assert_eq!(format_number(319.9), "319.9");
+        assert_eq!(format_number(137000.0), "1.370e5");
+        assert_eq!(format_number(0.0), "0");
     }
 
     #[test]
@@ -314,8 +417,15 @@ mod tests {
         let csv = report.to_csv();
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines.len(), 1 + METRICS.len());
-        assert!(lines[2].starts_with("success_rate,Success rate,,0.4,"), "{}", lines[2]);
+        assert!(
+            lines[2].starts_with("success_rate,Success rate,,0.4,"),
+            "{}",
+            lines[2]
+        );
         assert!(lines[2].ends_with(",wilson,5"), "{}", lines[2]);
+        let table = report.to_table();
+        assert!(table.contains("Success rate"), "{table}");
+        assert_eq!(table.lines().count(), 4 + METRICS.len(), "{table}");
         let json = serde_json::to_string(&report).unwrap();
         let back: EvalReport = serde_json::from_str(&json).unwrap();
         assert_eq!(back, report);
