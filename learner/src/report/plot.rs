@@ -53,7 +53,7 @@ pub struct Panel {
 pub struct Figure {
     pub title: String,
     pub y_label: String,
-    /// A share of episodes: the y axis is fixed to [0, 1].
+    /// A share of episodes: the y axis is fixed to [0, 1] (with a margin).
     pub share: bool,
     pub panels: Vec<Panel>,
     /// (method, colour) for the legend, in order.
@@ -120,21 +120,35 @@ pub fn steps_label(x: f64) -> String {
     format!("{text}{suffix}")
 }
 
-/// A tick value with at most three decimals and no trailing zeros: "0.8", "15", "0.025".
-pub fn tick_label(y: f64) -> String {
-    let text = format!("{y:.3}");
-    let text = text.trim_end_matches('0').trim_end_matches('.');
-    if text == "-0" {
-        "0".to_string()
+/// Decimals that tell apart the ticks of an axis spanning `span` with about 7 labels, the
+/// same for every tick: "6.10", "6.12"; "0.2", "0.4"; "20", "40".
+pub fn tick_decimals(span: f64) -> usize {
+    let step = span.abs() / 7.0;
+    if step <= 0.0 || !step.is_finite() {
+        return 2;
+    }
+    (-step.log10()).ceil().clamp(0.0, 4.0) as usize
+}
+
+pub fn tick_label(y: f64, decimals: usize) -> String {
+    let text = format!("{y:.decimals$}");
+    // No "-0.0" for a tick a rounding error below zero.
+    if text
+        .trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        text.trim_start_matches('-').to_string()
     } else {
-        text.to_string()
+        text
     }
 }
 
 /// The y range every panel shares, so scenes compare at a glance.
 fn y_range(figure: &Figure) -> (f64, f64) {
     if figure.share {
-        return (0.0, 1.0);
+        // A little room so lines at 0 and 1 stay clear of the frame.
+        return (-0.02, 1.02);
     }
     let (low, high) = figure
         .panels
@@ -175,6 +189,7 @@ fn draw<DB: DrawingBackend>(figure: &Figure, root: &DrawingArea<DB, Shift>) -> a
         .fold(0.0, f64::max)
         .max(1.0);
     let (y_low, y_high) = y_range(figure);
+    let decimals = tick_decimals(y_high - y_low);
     let areas = plots.split_evenly((1, figure.panels.len().max(1)));
     for (panel, area) in figure.panels.iter().zip(&areas) {
         let mut chart = ChartBuilder::on(area)
@@ -193,7 +208,7 @@ fn draw<DB: DrawingBackend>(figure: &Figure, root: &DrawingArea<DB, Shift>) -> a
             .x_labels(7)
             .y_labels(7)
             .x_label_formatter(&|x| steps_label(*x))
-            .y_label_formatter(&|y| tick_label(*y))
+            .y_label_formatter(&|y| tick_label(*y, decimals))
             .label_style((FONT, 14))
             .axis_desc_style((FONT, 15))
             .max_light_lines(1)
@@ -296,9 +311,12 @@ mod tests {
         assert_eq!(steps_label(20_000.0), "20k");
         assert_eq!(steps_label(1_500_000.0), "1.5M");
         assert_eq!(steps_label(2_340.0), "2.3k");
-        assert_eq!(tick_label(0.8), "0.8");
-        assert_eq!(tick_label(40.0), "40");
-        assert_eq!(tick_label(0.025), "0.025");
-        assert_eq!(tick_label(-0.0001), "0");
+        assert_eq!(tick_decimals(0.12), 2);
+        assert_eq!(tick_decimals(1.04), 1);
+        assert_eq!(tick_decimals(70.0), 0);
+        assert_eq!(tick_label(6.1, 2), "6.10");
+        assert_eq!(tick_label(0.8, 1), "0.8");
+        assert_eq!(tick_label(40.0, 0), "40");
+        assert_eq!(tick_label(-0.0001, 1), "0.0");
     }
 }
