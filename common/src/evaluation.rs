@@ -381,7 +381,7 @@ mod tests {
     fn numbers_keep_four_significant_digits() {
         assert_eq!(format_number(0.123456), "0.1235");
         assert_eq!(format_number(0.0012345), "0.0012");
-        assert_eq!(format_number(3.14159), "3.142");
+        assert_eq!(format_number(1.23456), "1.235");
         assert_eq!(format_number(-27166.4), "-27166");
         assert_eq!(format_number(319.9), "319.9");
         assert_eq!(format_number(137000.0), "1.370e5");
