@@ -282,7 +282,6 @@ fn figure(
                         .filter(|r| &r.scene == scene && &r.method == method)
                         .collect();
                     (!members.is_empty()).then(|| plot::Series {
-                        method: method.clone(),
                         colour,
                         band: aggregate::band(&members, key, points),
                     })

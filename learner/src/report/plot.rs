@@ -37,7 +37,6 @@ pub fn colour(index: usize) -> RGBColor {
 
 /// One method's curve in one panel.
 pub struct Series {
-    pub method: String,
     /// Index into the palette: the method's place in the report's method order, so a method
     /// has one colour in every panel and figure.
     pub colour: usize,
