@@ -1,6 +1,8 @@
 # The two commands a new user needs (see README.md):
 #   make run    set up, build, train locally (learner + 2 actors over gRPC) for a few minutes
 #   make test   set up, build, run every test (this is what CI runs via .ci/run)
+#   make experiments BUDGET=N   the paper's method × scene × seed grid and its report
+#                               (scripts/experiments.sh documents every knob)
 SHELL := /bin/bash
 
 # tch builds against the PyTorch in the project-local venv (scripts/setup.sh installs it).
@@ -10,7 +12,7 @@ export LIBTORCH_USE_PYTORCH := 1
 
 CARGO ?= cargo
 
-.PHONY: setup build run test bench
+.PHONY: setup build run test bench experiments
 
 setup:
 	@scripts/setup.sh
@@ -26,3 +28,8 @@ test: build
 
 bench: build
 	target/release/actor bench --scenario intersection
+
+# Knobs are environment variables of scripts/experiments.sh; given on make's command line
+# (make experiments BUDGET=200000 SEEDS="1 2 3") they reach it through the environment.
+experiments: build
+	scripts/experiments.sh

@@ -2,6 +2,7 @@
 //! side of the transports.
 
 pub mod bench;
+pub mod eval;
 pub mod grpc;
 pub mod metrics;
 pub mod render;

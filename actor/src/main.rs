@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
@@ -11,7 +11,8 @@ use tracing::Instrument;
 
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
-use junction_actor::{bench, grpc};
+use junction_actor::{bench, eval, grpc};
+use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
 use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 
@@ -41,6 +42,11 @@ enum Command {
     /// the road (dark red), and
     /// brief rings where cars arrive (green), crash (orange) or leave the road (magenta).
     Render(RenderArgs),
+    /// Evaluate a trained policy: every agent takes the policy's mean action, in scenes seeded
+    /// apart from training's, until N agent episodes have finished. Prints the paper's metrics
+    /// (§4.2) and CoPO's with 95 % confidence intervals, and writes them to
+    /// OUT/eval-<scenario>-seed<S>.json and .csv.
+    Eval(EvalArgs),
 }
 
 #[derive(Args)]
@@ -130,6 +136,39 @@ struct RenderArgs {
     out: PathBuf,
 }
 
+#[derive(Args)]
+struct EvalArgs {
+    /// The policy: a checkpoint directory (runs/<run>/checkpoints/ckpt-N), a run directory
+    /// (its newest checkpoint) or a policy.safetensors file.
+    #[arg(long, value_name = "PATH")]
+    checkpoint: PathBuf,
+    /// A shipped scenario name or a scenario TOML file [default: the scenario the checkpoint
+    /// was trained on, from its meta.json].
+    #[arg(long, value_name = "NAME|FILE")]
+    scenario: Option<String>,
+    /// Agent episodes to finish (the last step round may finish a few more; all are counted).
+    #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u64).range(1..))]
+    episodes: u64,
+    /// Evaluation seed. Scene k is seeded derive_seed(derive_seed(S, 0x4556414C00000000), k):
+    /// a stream training never draws from (training scenes use the actor id's byte sum), so
+    /// the traffic is held out from training whatever S is. Same seed, same result.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Scenes simulated side by side (each agent slot of each scene is a source of episodes).
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=256))]
+    scenes: u32,
+    /// Directory for the JSON and CSV [default: <run>/eval for a checkpoint inside a run
+    /// directory, else ./eval].
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Seconds between progress lines on stderr.
+    #[arg(long, value_name = "SECONDS", default_value_t = 5.0)]
+    progress_interval: f64,
+    /// Threads libtorch may use for inference.
+    #[arg(long, default_value_t = 1)]
+    torch_threads: i32,
+}
+
 /// Frames from 16 to 4096 pixels a side: GIF's own limit is 65535, but larger frames only
 /// make huge files.
 fn parse_size(text: &str) -> Result<(usize, usize), String> {
@@ -158,6 +197,7 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Some(Command::Render(args)) => render(args),
+        Some(Command::Eval(args)) => evaluate(args),
         None => run_actor(cli.run),
     }
 }
@@ -176,13 +216,9 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     }
     let driver = match &args.checkpoint {
         Some(path) => {
-            let file = replay::policy_file(path)?;
-            let bytes =
-                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let policy = replay::load_policy(&bytes, &scenario)
-                .with_context(|| format!("loading the policy in {}", file.display()))?;
-            tracing::info!(policy = %file.display(), "driving with the policy's mean action");
-            Driver::Policy(policy)
+            let loaded = replay::policy_driver(path, &scenario)?;
+            tracing::info!(policy = %loaded.file.display(), "driving with the policy's mean action");
+            loaded.driver
         }
         None => Driver::Autopilot,
     };
@@ -212,6 +248,89 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     let mut report = serde_json::to_value(&summary)?;
     report["out"] = args.out.display().to_string().into();
     println!("{report}");
+    Ok(())
+}
+
+/// `actor eval`: loads the policy, simulates until enough episodes have finished (progress on
+/// stderr), prints the metrics table and writes the JSON and CSV.
+fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
+    tch::set_num_threads(args.torch_threads.max(1));
+    let file = replay::policy_file(&args.checkpoint)?;
+    let (training, trained_on) = eval::training_info(&file)?;
+    let scenario = match (&args.scenario, trained_on) {
+        (Some(name), _) => scenarios::load(name)?,
+        (None, Some(scenario)) => scenario,
+        (None, None) => anyhow::bail!(
+            "{} has no meta.json naming its training scenario: give --scenario",
+            file.display()
+        ),
+    };
+    let loaded = replay::policy_driver(&file, &scenario)?;
+    let out_dir = args
+        .out
+        .unwrap_or_else(|| eval::default_out_dir(&loaded.file));
+    std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    tracing::info!(
+        policy = %loaded.file.display(),
+        version = loaded.version,
+        scenario = %scenario.name,
+        episodes = args.episodes,
+        seed = args.seed,
+        "evaluating the policy's mean action"
+    );
+    let options = eval::EvalOptions {
+        seed: args.seed,
+        episodes: args.episodes,
+        scenes: args.scenes as usize,
+    };
+    let started = Instant::now();
+    let mut last_report = started;
+    let tally = eval::run(&scenario, &loaded.driver, &options, |tally| {
+        if last_report.elapsed().as_secs_f64() < args.progress_interval {
+            return;
+        }
+        last_report = Instant::now();
+        let done = tally.episodes.len() as u64;
+        let elapsed = started.elapsed().as_secs_f64();
+        let remaining = args.episodes.saturating_sub(done) as f64;
+        tracing::info!(
+            episodes = format!("{done}/{}", args.episodes),
+            scene_steps = tally.scene_steps,
+            elapsed_s = format!("{elapsed:.0}"),
+            eta_s = format!("{:.0}", elapsed * remaining / done.max(1) as f64),
+            "evaluating"
+        );
+    })?;
+    let report = EvalReport {
+        format: EVAL_FORMAT.to_string(),
+        policy: loaded.file.display().to_string(),
+        policy_version: loaded.version,
+        training,
+        scenario: scenario.name.clone(),
+        seed: args.seed,
+        scenes: options.scenes,
+        episodes_requested: args.episodes,
+        episodes: tally.episodes.len() as u64,
+        outcomes: tally.outcomes(),
+        scene_steps: tally.scene_steps,
+        sim_seconds: tally.sim_seconds,
+        collisions: tally.collisions,
+        metrics: tally.metrics(args.seed),
+        wall_s: started.elapsed().as_secs_f64(),
+    };
+    let stem = out_dir.join(format!(
+        "eval-{}-seed{}",
+        eval::file_safe(&scenario.name),
+        args.seed
+    ));
+    let json_path = stem.with_extension("json");
+    let csv_path = stem.with_extension("csv");
+    std::fs::write(&json_path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("writing {}", json_path.display()))?;
+    std::fs::write(&csv_path, report.to_csv())
+        .with_context(|| format!("writing {}", csv_path.display()))?;
+    print!("{}", report.to_table());
+    println!("wrote {} and {}", json_path.display(), csv_path.display());
     Ok(())
 }
 

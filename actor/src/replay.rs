@@ -11,7 +11,7 @@ use anyhow::{Context, bail, ensure};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::{GaussianPolicy, PolicyMeta};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::render::{Flashes, Frame, Renderer};
@@ -38,7 +38,7 @@ pub enum Driver {
 
 impl Driver {
     /// Fills `out` with `[steer, throttle_brake]` for every slot (zeros for empty ones).
-    fn actions(&self, scene: &Scene, out: &mut [f32]) -> anyhow::Result<()> {
+    pub fn actions(&self, scene: &Scene, out: &mut [f32]) -> anyhow::Result<()> {
         let policy = match self {
             Driver::Autopilot => {
                 autopilot_actions(scene, CRUISE_SPEED_MPS, out);
@@ -65,6 +65,29 @@ impl Driver {
         }
         Ok(())
     }
+}
+
+/// A checkpoint's policy, ready to drive.
+pub struct LoadedPolicy {
+    pub driver: Driver,
+    /// The policy file it was read from.
+    pub file: PathBuf,
+    /// The policy version (learner updates) it was saved at.
+    pub version: u64,
+}
+
+/// The driver for `--checkpoint PATH` (a checkpoint or run directory, or a policy file) on
+/// `scenario`: the one place a command turns a checkpoint into something that acts.
+pub fn policy_driver(path: &Path, scenario: &ScenarioConfig) -> anyhow::Result<LoadedPolicy> {
+    let file = policy_file(path)?;
+    let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    let (policy, meta) = load_policy(&bytes, scenario)
+        .with_context(|| format!("loading the policy in {}", file.display()))?;
+    Ok(LoadedPolicy {
+        driver: Driver::Policy(policy),
+        file,
+        version: meta.version,
+    })
 }
 
 /// `policy.safetensors` of a checkpoint directory, of the newest checkpoint of a run directory
@@ -102,7 +125,10 @@ pub fn policy_file(path: &Path) -> anyhow::Result<PathBuf> {
 }
 
 /// Decodes a policy blob and checks it was trained on this scenario's observations.
-pub fn load_policy(bytes: &[u8], scenario: &ScenarioConfig) -> anyhow::Result<GaussianPolicy> {
+pub fn load_policy(
+    bytes: &[u8],
+    scenario: &ScenarioConfig,
+) -> anyhow::Result<(GaussianPolicy, PolicyMeta)> {
     let (policy, meta) =
         GaussianPolicy::from_bytes(bytes, tch::Device::Cpu).context("decoding policy weights")?;
     ensure!(
@@ -128,7 +154,7 @@ pub fn load_policy(bytes: &[u8], scenario: &ScenarioConfig) -> anyhow::Result<Ga
         meta.version,
         policy.action_dim()
     );
-    Ok(policy)
+    Ok((policy, meta))
 }
 
 /// What to simulate and draw.
@@ -386,7 +412,8 @@ mod tests {
         let scenario = scenarios::load("tiny-straight").unwrap();
         let fitting =
             GaussianPolicy::new(tch::Device::Cpu, scenario.obs_dim() as i64, 2, &[8], 0.0);
-        let policy = load_policy(&fitting.to_bytes(7).unwrap(), &scenario).unwrap();
+        let (policy, meta) = load_policy(&fitting.to_bytes(7).unwrap(), &scenario).unwrap();
+        assert_eq!(meta.version, 7);
         let summary = run(
             &scenario,
             &Driver::Policy(policy),

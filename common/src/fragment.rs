@@ -174,6 +174,16 @@ impl RolloutFragment {
         self.alive.iter().filter(|a| **a).count()
     }
 
+    /// Collisions of the episodes that ended in this fragment, agents' and human drivers'
+    /// (the numerator of collisions per simulated second).
+    pub fn collisions(&self) -> u64 {
+        self.episodes
+            .iter()
+            .chain(&self.human_episodes)
+            .map(|e| u64::from(e.collisions))
+            .sum()
+    }
+
     pub fn index(&self, t: usize, slot: usize) -> usize {
         t * self.agents + slot
     }

@@ -1,8 +1,11 @@
 //! Junction's shared vocabulary: configuration, the wire contract and its codecs, the
-//! observation/action layout, the policy network and metric names. Both `actor` and `learner`
-//! depend on this crate and never on each other.
+//! observation/action layout, the policy network, metric names, and the evaluation metrics
+//! with their confidence intervals. Both `actor` and `learner` depend on this crate and never
+//! on each other.
 
+pub mod confidence;
 pub mod config;
+pub mod evaluation;
 pub mod fragment;
 pub mod lcf;
 pub mod policy;

@@ -1,11 +1,13 @@
 //! Junction's learner: ingest of rollout fragments, the learning algorithms, the optimiser,
-//! checkpoints, weight broadcast and the metrics endpoint.
+//! checkpoints, weight broadcast, the metrics endpoint, and offline reports of finished runs.
 
 pub mod algo;
 pub mod bench;
 pub mod checkpoint;
 pub mod metrics;
 pub mod optim;
+pub mod progress;
+pub mod report;
 pub mod server;
 pub mod stats;
 pub mod trainer;

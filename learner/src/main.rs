@@ -19,6 +19,7 @@ use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 use junction_learner::algo;
 use junction_learner::checkpoint::Checkpointer;
 use junction_learner::metrics::LearnerMetrics;
+use junction_learner::report::{self, ReportOptions};
 use junction_learner::server::{LearnerService, Shared};
 use junction_learner::trainer::{Progress, Trainer, weights_message};
 
@@ -46,6 +47,36 @@ enum Command {
     /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update) and print one
     /// JSON line with samples_per_s.
     Bench(BenchArgs),
+    /// Report finished runs offline: a Markdown table like the paper's Table 1 per scene
+    /// (methods as columns, mean ± 95 % CI over seeds, from `actor eval` results in
+    /// <run>/eval/ when every seed has one, else from the last training window), the time to
+    /// reach a success rate, and PNG + SVG figures of the training curves (scenes side by
+    /// side, methods overlaid, range over seeds shaded). Writes OUT/report.md,
+    /// OUT/summary.json and OUT/figures/.
+    Report(ReportArgs),
+}
+
+#[derive(Args)]
+struct ReportArgs {
+    /// Run directories (each holding progress.jsonl and config.toml), or directories whose
+    /// subdirectories are runs.
+    #[arg(required = true, value_name = "RUN_DIR")]
+    runs: Vec<PathBuf>,
+    /// Output directory.
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Column order of the methods (learner.algo), comma-separated; others found follow.
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    methods: Vec<String>,
+    /// Order of the scenes (scenario.name), comma-separated; others found follow.
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    scenes: Vec<String>,
+    /// Success rate of the time-to-success table.
+    #[arg(long, default_value_t = 0.8)]
+    success_threshold: f64,
+    /// Episodes a training window needs before its success rate counts as reached.
+    #[arg(long, default_value_t = 100)]
+    min_window_episodes: usize,
 }
 
 #[derive(Args)]
@@ -151,6 +182,23 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Bench(args) => bench(args),
+        Command::Report(args) => {
+            let options = ReportOptions {
+                methods: args.methods,
+                scenes: args.scenes,
+                success_threshold: args.success_threshold,
+                min_window_episodes: args.min_window_episodes,
+                ..ReportOptions::default()
+            };
+            let summary = report::run(&args.runs, &args.out, &options)?;
+            println!(
+                "report: {} runs, {} skipped → {}",
+                summary.runs.len(),
+                summary.skipped.len(),
+                args.out.join("report.md").display()
+            );
+            Ok(())
+        }
         Command::Serve(args) => {
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)

@@ -296,15 +296,9 @@ impl LearnerMetrics {
                     .inc();
             }
         }
-        let collisions: u64 = fragment
-            .episodes
-            .iter()
-            .chain(&fragment.human_episodes)
-            .map(|e| u64::from(e.collisions))
-            .sum();
         self.collisions
             .with_label_values(&[scenario])
-            .inc_by(collisions);
+            .inc_by(fragment.collisions());
         self.simulated_seconds
             .with_label_values(&[scenario])
             .inc_by(f64::from(fragment.sim_seconds));

@@ -4,13 +4,28 @@ use std::collections::VecDeque;
 
 use junction_common::fragment::{EpisodeStats, Outcome};
 
+/// The newest `capacity` agent episodes, and the fragments that delivered them (for the
+/// collision rate, which needs the simulated time those episodes came from).
 pub struct EpisodeWindow {
     capacity: usize,
     episodes: VecDeque<EpisodeStats>,
+    fragments: VecDeque<FragmentTally>,
 }
 
-/// Aggregates of the episodes in the window; rates are shares of episodes.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+/// What one fragment contributed: its agent episodes, every vehicle's collisions (agents and
+/// human drivers, as in `junction_learner_collisions_total`) and its scene time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct FragmentTally {
+    episodes: usize,
+    collisions: u64,
+    sim_seconds: f64,
+}
+
+/// Aggregates of the episodes in the window; rates are shares of episodes. Serialised as the
+/// `window` object of every `progress.jsonl` line: add fields, never rename them (readers
+/// such as `learner report` and the learning tests read them by name).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct WindowSummary {
     pub episodes: usize,
     pub success_rate: f64,
@@ -25,6 +40,11 @@ pub struct WindowSummary {
     pub mean_accel: f64,
     /// Mean of the episodes' largest |longitudinal acceleration|, m/s² (paper §4.2).
     pub mean_max_accel: f64,
+    /// Collisions per simulated second of scene time (paper §4.2) over the fragments that
+    /// delivered the window's episodes (and any newer ones); 0 before any time is simulated.
+    pub collisions_per_s: f64,
+    /// Simulated seconds behind `collisions_per_s`.
+    pub sim_seconds: f64,
 }
 
 impl EpisodeWindow {
@@ -32,20 +52,50 @@ impl EpisodeWindow {
         EpisodeWindow {
             capacity: capacity.max(1),
             episodes: VecDeque::with_capacity(capacity),
+            fragments: VecDeque::new(),
         }
     }
 
-    pub fn push(&mut self, episode: EpisodeStats) {
-        if self.episodes.len() == self.capacity {
-            self.episodes.pop_front();
+    /// Adds one received fragment: its agent episodes, the collisions of all its finished
+    /// episodes (agents' and human drivers') and its simulated seconds.
+    pub fn record(&mut self, episodes: &[EpisodeStats], collisions: u64, sim_seconds: f64) {
+        for episode in episodes {
+            if self.episodes.len() == self.capacity {
+                self.episodes.pop_front();
+            }
+            self.episodes.push_back(*episode);
         }
-        self.episodes.push_back(episode);
+        self.fragments.push_back(FragmentTally {
+            episodes: episodes.len(),
+            collisions,
+            sim_seconds,
+        });
+        // Drop the oldest fragment while the newer ones still hold every windowed episode.
+        let mut newer_episodes: usize = self.fragments.iter().map(|f| f.episodes).sum();
+        while let Some(oldest) = self.fragments.front() {
+            newer_episodes -= oldest.episodes;
+            if self.fragments.len() == 1 || newer_episodes < self.episodes.len() {
+                break;
+            }
+            self.fragments.pop_front();
+        }
     }
 
     pub fn summary(&self) -> WindowSummary {
+        let sim_seconds: f64 = self.fragments.iter().map(|f| f.sim_seconds).sum();
+        let collisions: u64 = self.fragments.iter().map(|f| f.collisions).sum();
+        let collisions_per_s = if sim_seconds > 0.0 {
+            collisions as f64 / sim_seconds
+        } else {
+            0.0
+        };
         let n = self.episodes.len();
         if n == 0 {
-            return WindowSummary::default();
+            return WindowSummary {
+                collisions_per_s,
+                sim_seconds,
+                ..WindowSummary::default()
+            };
         }
         let share = |outcome: Outcome| {
             self.episodes
@@ -77,6 +127,8 @@ impl EpisodeWindow {
             max_length: self.episodes.iter().map(|e| e.length).max().unwrap_or(0),
             mean_accel: mean(|e| e.mean_abs_accel),
             mean_max_accel: mean(|e| e.max_abs_accel),
+            collisions_per_s,
+            sim_seconds,
         }
     }
 }
@@ -101,11 +153,17 @@ mod tests {
     #[test]
     fn rates_and_means_over_the_newest_episodes_only() {
         let mut w = EpisodeWindow::new(4);
-        w.push(episode(Outcome::Crash, -100.0, 1000)); // falls out of the window
-        w.push(episode(Outcome::Success, 10.0, 50));
-        w.push(episode(Outcome::Success, 20.0, 70));
-        w.push(episode(Outcome::Crash, -5.0, 10));
-        w.push(episode(Outcome::OutOfRoad, 3.0, 30));
+        let crash = episode(Outcome::Crash, -100.0, 1000); // falls out of the window
+        w.record(&[crash, episode(Outcome::Success, 10.0, 50)], 1, 20.0);
+        w.record(&[episode(Outcome::Success, 20.0, 70)], 0, 20.0);
+        w.record(
+            &[
+                episode(Outcome::Crash, -5.0, 10),
+                episode(Outcome::OutOfRoad, 3.0, 30),
+            ],
+            2,
+            20.0,
+        );
         let s = w.summary();
         assert_eq!(s.episodes, 4);
         assert_eq!(
@@ -125,6 +183,43 @@ mod tests {
             "{}",
             s.mean_max_accel
         );
+        // The first fragment still delivers a windowed episode: all three count.
+        assert_eq!((s.sim_seconds, s.collisions_per_s), (60.0, 3.0 / 60.0));
         assert_eq!(EpisodeWindow::new(3).summary(), WindowSummary::default());
+    }
+
+    #[test]
+    fn collision_rate_covers_the_fragments_of_the_windowed_episodes() {
+        let mut w = EpisodeWindow::new(2);
+        let success = episode(Outcome::Success, 1.0, 10);
+        w.record(&[success, success], 4, 10.0);
+        // No episodes, but simulated time: kept, newer than the windowed episodes.
+        w.record(&[], 1, 5.0);
+        let s = w.summary();
+        assert_eq!(
+            (s.episodes, s.sim_seconds, s.collisions_per_s),
+            (2, 15.0, 5.0 / 15.0)
+        );
+        // Two newer episodes push both older fragments out.
+        w.record(&[success, success], 0, 10.0);
+        let s = w.summary();
+        assert_eq!((s.sim_seconds, s.collisions_per_s), (10.0, 0.0));
+        // One newer episode: the previous fragment still holds one of the window's two.
+        w.record(&[success], 3, 10.0);
+        assert_eq!(w.summary().sim_seconds, 20.0);
+        let empty = EpisodeWindow::new(2);
+        assert_eq!(empty.summary().collisions_per_s, 0.0);
+    }
+
+    #[test]
+    fn summaries_without_the_newer_fields_still_parse() {
+        let old = r#"{"episodes":3,"success_rate":0.5,"crash_rate":0.5,"out_of_road_rate":0,
+            "timeout_rate":0,"mean_reward":1,"max_reward":2,"mean_length":3,"max_length":4,
+            "mean_accel":0.1,"mean_max_accel":0.2}"#;
+        let s: WindowSummary = serde_json::from_str(old).unwrap();
+        assert_eq!(
+            (s.episodes, s.success_rate, s.collisions_per_s),
+            (3, 0.5, 0.0)
+        );
     }
 }

@@ -20,6 +20,7 @@ use junction_common::weights;
 use crate::algo::{Algorithm, Stage, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
 use crate::metrics::DROP_STALE;
+use crate::progress::ProgressLine;
 use crate::server::Shared;
 use crate::stats::EpisodeWindow;
 
@@ -83,8 +84,10 @@ pub fn weights_message(
 }
 
 struct Reporter {
-    /// Episodes finished since this process started.
+    /// Episodes finished, collisions and simulated seconds received since this process started.
     episodes: u64,
+    collisions: u64,
+    sim_seconds: f64,
     last: Instant,
     last_agent_steps: u64,
     started: Instant,
@@ -102,6 +105,8 @@ impl Trainer {
         let budget = &config.run;
         let mut reporter = Reporter {
             episodes: 0,
+            collisions: 0,
+            sim_seconds: 0.0,
             last: started,
             last_agent_steps: self.progress.agent_steps,
             started,
@@ -133,10 +138,12 @@ impl Trainer {
                 .set(self.queue.len() as i64);
             match received {
                 Ok(Some(fragment)) => {
+                    let (collisions, sim_seconds) =
+                        (fragment.collisions(), f64::from(fragment.sim_seconds));
                     reporter.episodes += fragment.episodes.len() as u64;
-                    for episode in &fragment.episodes {
-                        window.push(*episode);
-                    }
+                    reporter.collisions += collisions;
+                    reporter.sim_seconds += sim_seconds;
+                    window.record(&fragment.episodes, collisions, sim_seconds);
                     let metrics = &self.shared.metrics;
                     metrics.record_fragment(&config.scenario.name, &fragment);
                     let lag = self
@@ -301,18 +308,28 @@ impl Trainer {
             status.mean_episode_reward = summary.mean_reward;
             status.episodes = reporter.episodes;
         }
-        let line = serde_json::json!({
-            "elapsed_s": reporter.started.elapsed().as_secs_f64(),
-            "unix_s": SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0),
-            "version": self.progress.version,
-            "updates": self.progress.updates,
-            "agent_steps": self.progress.agent_steps,
-            "env_steps": self.progress.env_steps,
-            "samples_trained": self.progress.samples_trained,
-            "agent_steps_per_s": rate,
-            "scenario": scenario,
-            "window": summary,
-        });
+        let config = &self.shared.config;
+        let line = ProgressLine {
+            elapsed_s: reporter.started.elapsed().as_secs_f64(),
+            unix_s: SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map(|d| d.as_secs_f64())
+                .unwrap_or(0.0),
+            algorithm: self.algorithm.name().to_string(),
+            scenario: scenario.clone(),
+            seed: Some(config.run.seed),
+            version: self.progress.version,
+            updates: self.progress.updates,
+            agent_steps: self.progress.agent_steps,
+            env_steps: self.progress.env_steps,
+            samples_trained: self.progress.samples_trained,
+            agent_steps_per_s: rate,
+            episodes_total: reporter.episodes,
+            collisions_total: reporter.collisions,
+            sim_seconds_total: reporter.sim_seconds,
+            window: summary,
+        };
+        let line = serde_json::to_string(&line).context("encoding a progress line")?;
         let mut file = OpenOptions::new()
             .create(true)
             .append(true)

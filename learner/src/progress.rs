@@ -1,0 +1,57 @@
+//! `<run-dir>/progress.jsonl`: one JSON object per line, appended every
+//! `run.progress_interval_s` and once when training stops, so a finished run can be plotted
+//! offline (`learner report`) without Prometheus.
+//!
+//! | key | meaning |
+//! |---|---|
+//! | `elapsed_s` | wall-clock seconds since this learner process started (restarts at 0 on `--resume`) |
+//! | `unix_s` | wall-clock time of the line |
+//! | `algorithm`, `scenario`, `seed` | `learner.algo`, `scenario.name`, `run.seed` |
+//! | `version`, `updates` | policy version and updates so far (restored on resume) |
+//! | `agent_steps`, `env_steps`, `samples_trained` | agent-steps and scene steps consumed, samples trained (restored on resume) |
+//! | `agent_steps_per_s` | consumption rate since the previous line |
+//! | `episodes_total`, `collisions_total`, `sim_seconds_total` | agent episodes, collisions (agents' and human drivers') and simulated scene seconds received by this process |
+//! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
+//!
+//! Fields are only ever added: every reader takes a missing field as its default.
+
+use serde::{Deserialize, Serialize};
+
+use crate::stats::WindowSummary;
+
+/// One line of `progress.jsonl` (written by the trainer, read by `learner report`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ProgressLine {
+    pub elapsed_s: f64,
+    pub unix_s: f64,
+    pub algorithm: String,
+    pub scenario: String,
+    pub seed: Option<u64>,
+    pub version: u64,
+    pub updates: u64,
+    pub agent_steps: u64,
+    pub env_steps: u64,
+    pub samples_trained: u64,
+    pub agent_steps_per_s: f64,
+    pub episodes_total: u64,
+    pub collisions_total: u64,
+    pub sim_seconds_total: f64,
+    pub window: WindowSummary,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lines_of_older_learners_parse_with_defaults() {
+        let old = r#"{"elapsed_s":10.5,"unix_s":1.0,"version":3,"updates":3,"agent_steps":900,
+            "env_steps":300,"samples_trained":4500,"agent_steps_per_s":90.0,
+            "scenario":"intersection","window":{"episodes":2,"success_rate":0.5}}"#;
+        let line: ProgressLine = serde_json::from_str(old).unwrap();
+        assert_eq!((line.agent_steps, line.updates), (900, 3));
+        assert_eq!((line.window.episodes, line.window.success_rate), (2, 0.5));
+        assert_eq!((line.algorithm.as_str(), line.seed), ("", None));
+    }
+}

@@ -1,0 +1,312 @@
+//! From runs to numbers: a metric's value per run (evaluation, else the last training
+//! window), mean ± 95 % interval over seeds, curves on a common agent-step axis, and the
+//! agent-steps and wall time a run took to reach a success rate.
+
+use junction_common::confidence::{self, Estimate};
+
+use crate::progress::ProgressLine;
+use crate::report::runs::Run;
+
+/// Where a table value comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Source {
+    /// `actor eval` of the run's final checkpoint.
+    Eval,
+    /// The last line of the run's `progress.jsonl` (the training window).
+    Training,
+}
+
+/// The training window's value of metric `key` (keys of `evaluation::METRICS`); None for
+/// metrics training does not track.
+pub fn window_value(line: &ProgressLine, key: &str) -> Option<f64> {
+    let w = &line.window;
+    Some(match key {
+        "collision_rate" => w.collisions_per_s,
+        "success_rate" => w.success_rate,
+        "crash_rate" => w.crash_rate,
+        "out_of_road_rate" => w.out_of_road_rate,
+        "timeout_rate" => w.timeout_rate,
+        "accel_mean" => w.mean_accel,
+        "accel_max" => w.mean_max_accel,
+        "reward_mean" => w.mean_reward,
+        "reward_max" => w.max_reward,
+        "length_mean" => w.mean_length,
+        "length_max" => f64::from(w.max_length),
+        _ => return None,
+    })
+}
+
+/// A run's value of `key` from `source`: the mean over its evaluations (usually one), or its
+/// last training window.
+pub fn run_value(run: &Run, key: &str, source: Source) -> Option<f64> {
+    match source {
+        Source::Eval => {
+            let values: Vec<f64> = run
+                .evals
+                .iter()
+                .filter_map(|e| e.metrics.get(key).map(|m| m.value))
+                .collect();
+            (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+        }
+        Source::Training => run.last().and_then(|l| window_value(l, key)),
+    }
+}
+
+/// The source for a group of runs (one method on one scene): evaluations when every run has
+/// one, so a table cell never mixes the two.
+pub fn group_source(runs: &[&Run]) -> Source {
+    if !runs.is_empty() && runs.iter().all(|r| !r.evals.is_empty()) {
+        Source::Eval
+    } else {
+        Source::Training
+    }
+}
+
+/// Mean over the runs (seeds) with Student's t interval; None when no run has the metric.
+pub fn across_seeds(runs: &[&Run], key: &str, source: Source) -> Option<Estimate> {
+    let values: Vec<f64> = runs
+        .iter()
+        .filter_map(|r| run_value(r, key, source))
+        .collect();
+    (!values.is_empty()).then(|| confidence::mean_t(&values))
+}
+
+/// (agent-steps, value) of `key` along a run's training, from lines whose window holds at
+/// least one episode (before that the window's values mean nothing).
+pub fn curve(run: &Run, key: &str) -> Vec<(f64, f64)> {
+    run.lines
+        .iter()
+        .filter(|l| l.window.episodes > 0)
+        .filter_map(|l| Some((l.agent_steps as f64, window_value(l, key)?)))
+        .collect()
+}
+
+/// Linear interpolation of a curve (sorted by x) at `x`; None outside its range.
+pub fn interpolate(points: &[(f64, f64)], x: f64) -> Option<f64> {
+    let first = points.first()?;
+    let last = points.last()?;
+    if x < first.0 || x > last.0 {
+        return None;
+    }
+    let i = points.partition_point(|p| p.0 < x);
+    if i == 0 {
+        return Some(first.1);
+    }
+    let (a, b) = (points[i - 1], points[i]);
+    Some(if b.0 > a.0 {
+        a.1 + (b.1 - a.1) * (x - a.0) / (b.0 - a.0)
+    } else {
+        b.1
+    })
+}
+
+/// The seeds' curves at one agent-step count.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BandPoint {
+    pub x: f64,
+    pub mean: f64,
+    pub min: f64,
+    pub max: f64,
+    /// Seeds whose curve reaches this far.
+    pub seeds: usize,
+}
+
+/// The mean and range over seeds of `key` at `points` evenly spaced agent-step counts where
+/// every seed has data (from the latest first point to the earliest last one), so the mean
+/// never jumps where a seed's curve begins or ends.
+pub fn band(runs: &[&Run], key: &str, points: usize) -> Vec<BandPoint> {
+    let curves: Vec<Vec<(f64, f64)>> = runs
+        .iter()
+        .map(|r| curve(r, key))
+        .filter(|c| !c.is_empty())
+        .collect();
+    let start = curves
+        .iter()
+        .map(|c| c[0].0)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let end = curves
+        .iter()
+        .map(|c| c[c.len() - 1].0)
+        .fold(f64::INFINITY, f64::min);
+    if curves.is_empty() || start > end {
+        return Vec::new();
+    }
+    let points = if end > start { points.max(2) } else { 1 };
+    (0..points)
+        .map(|k| {
+            let x = if points == 1 {
+                start
+            } else {
+                start + (end - start) * k as f64 / (points - 1) as f64
+            };
+            let values: Vec<f64> = curves.iter().filter_map(|c| interpolate(c, x)).collect();
+            BandPoint {
+                x,
+                mean: values.iter().sum::<f64>() / values.len() as f64,
+                min: values.iter().copied().fold(f64::INFINITY, f64::min),
+                max: values.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+                seeds: values.len(),
+            }
+        })
+        .collect()
+}
+
+/// When a run's training window first reached a success rate.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Reach {
+    pub agent_steps: u64,
+    pub elapsed_s: f64,
+}
+
+/// The first line whose window holds at least `min_episodes` episodes and a success rate of
+/// at least `threshold`.
+pub fn first_reach(run: &Run, threshold: f64, min_episodes: usize) -> Option<Reach> {
+    run.lines
+        .iter()
+        .find(|l| l.window.episodes >= min_episodes && l.window.success_rate >= threshold)
+        .map(|l| Reach {
+            agent_steps: l.agent_steps,
+            elapsed_s: l.elapsed_s,
+        })
+}
+
+/// The best windowed success rate of a run (windows of at least `min_episodes` episodes),
+/// with where it was reached.
+pub fn best_success(run: &Run, min_episodes: usize) -> Option<(f64, Reach)> {
+    run.lines
+        .iter()
+        .filter(|l| l.window.episodes >= min_episodes)
+        .fold(None, |best: Option<&ProgressLine>, l| match best {
+            Some(b) if b.window.success_rate >= l.window.success_rate => Some(b),
+            _ => Some(l),
+        })
+        .map(|l| {
+            (
+                l.window.success_rate,
+                Reach {
+                    agent_steps: l.agent_steps,
+                    elapsed_s: l.elapsed_s,
+                },
+            )
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stats::WindowSummary;
+
+    fn line(agent_steps: u64, episodes: usize, success_rate: f64, elapsed_s: f64) -> ProgressLine {
+        ProgressLine {
+            agent_steps,
+            elapsed_s,
+            window: WindowSummary {
+                episodes,
+                success_rate,
+                ..WindowSummary::default()
+            },
+            ..ProgressLine::default()
+        }
+    }
+
+    fn run(seed: u64, lines: Vec<ProgressLine>) -> Run {
+        Run {
+            dir: format!("run-{seed}").into(),
+            method: "ippo".into(),
+            scene: "intersection".into(),
+            seed,
+            lines,
+            bad_lines: 0,
+            evals: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn interpolation_inside_the_curve_only() {
+        let c = [(0.0, 0.0), (10.0, 1.0), (20.0, 3.0)];
+        assert_eq!(interpolate(&c, 5.0), Some(0.5));
+        assert_eq!(interpolate(&c, 15.0), Some(2.0));
+        assert_eq!(interpolate(&c, 0.0), Some(0.0));
+        assert_eq!(interpolate(&c, 20.0), Some(3.0));
+        assert_eq!(interpolate(&c, 21.0), None);
+        assert_eq!(interpolate(&[], 1.0), None);
+    }
+
+    #[test]
+    fn band_spans_where_every_seed_has_data() {
+        // Seed 1 goes 0.1 → 1 over x = 10..100 (its line at x = 0 has no episodes yet and is
+        // left out); seed 2 goes 0 → 0.7 over x = 0..50. Both cover 10..50.
+        let a = run(
+            1,
+            vec![
+                line(0, 0, 0.7, 1.0),
+                line(10, 5, 0.1, 2.0),
+                line(100, 9, 1.0, 9.0),
+            ],
+        );
+        let b = run(2, vec![line(0, 4, 0.0, 1.0), line(50, 8, 0.7, 5.0)]);
+        let band = band(&[&a, &b], "success_rate", 3);
+        let xs: Vec<f64> = band.iter().map(|p| p.x).collect();
+        assert_eq!(xs, [10.0, 30.0, 50.0]);
+        // x = 30: seed 1 at 0.1 + 0.9·20/90 = 0.3, seed 2 at 0.7·30/50 = 0.42.
+        let p = band[1];
+        assert!((p.mean - 0.36).abs() < 1e-12, "{p:?}");
+        assert!(
+            (p.min - 0.3).abs() < 1e-12 && (p.max - 0.42).abs() < 1e-12,
+            "{p:?}"
+        );
+        assert_eq!(p.seeds, 2);
+        // x = 50: seed 1 at 0.5, seed 2 at 0.7.
+        assert!((band[2].mean - 0.6).abs() < 1e-12);
+        let single = super::band(&[&a], "success_rate", 4);
+        assert_eq!(
+            (single[0].x, single[3].x, single[3].mean),
+            (10.0, 100.0, 1.0)
+        );
+        assert!(super::band(&[&a], "no_such_metric", 5).is_empty());
+        let disjoint = run(3, vec![line(200, 5, 0.5, 1.0), line(300, 5, 0.5, 2.0)]);
+        assert!(super::band(&[&b, &disjoint], "success_rate", 5).is_empty());
+    }
+
+    #[test]
+    fn time_to_success_needs_a_full_enough_window() {
+        let r = run(
+            1,
+            vec![
+                line(100, 3, 1.0, 1.0), // too few episodes to count
+                line(200, 50, 0.6, 2.0),
+                line(300, 60, 0.85, 3.0),
+                line(400, 60, 0.8, 4.0),
+            ],
+        );
+        assert_eq!(
+            first_reach(&r, 0.8, 50),
+            Some(Reach {
+                agent_steps: 300,
+                elapsed_s: 3.0
+            })
+        );
+        assert_eq!(first_reach(&r, 0.9, 50), None);
+        let (best, at) = best_success(&r, 50).unwrap();
+        assert_eq!((best, at.agent_steps), (0.85, 300));
+    }
+
+    #[test]
+    fn seeds_aggregate_with_a_t_interval_and_training_is_the_fallback_source() {
+        let a = run(1, vec![line(10, 5, 0.2, 1.0)]);
+        let b = run(2, vec![line(10, 5, 0.4, 1.0)]);
+        let c = run(3, vec![line(10, 5, 0.6, 1.0)]);
+        let runs = [&a, &b, &c];
+        assert_eq!(group_source(&runs), Source::Training);
+        let e = across_seeds(&runs, "success_rate", Source::Training).unwrap();
+        // Mean 0.4, s = 0.2, t(2) = 4.3027: half-width 4.3027·0.2/√3 = 0.49683.
+        assert!((e.value - 0.4).abs() < 1e-12);
+        assert!((e.half_width().unwrap() - 0.49683).abs() < 1e-4, "{e:?}");
+        assert_eq!(
+            across_seeds(&runs, "successes_per_300", Source::Training),
+            None
+        );
+        assert_eq!(across_seeds(&runs, "success_rate", Source::Eval), None);
+    }
+}

@@ -1,0 +1,509 @@
+//! `learner report RUN_DIR... --out DIR`: reads finished runs offline and writes what the
+//! paper shows (§4): a table like its Table 1 per scene (methods as columns, metrics as rows,
+//! mean ± 95 % interval over seeds) and figures of the training curves (intersection and
+//! roundabout side by side, methods overlaid), plus the time each run took to reach a success
+//! rate. Writes `report.md`, `summary.json` and `figures/<metric>.png|svg`.
+
+pub mod aggregate;
+pub mod plot;
+pub mod runs;
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::Serialize;
+
+use junction_common::confidence::Estimate;
+use junction_common::evaluation::{METRICS, format_number, metric_def};
+
+use aggregate::{Reach, Source};
+use runs::Run;
+
+/// Curves drawn, one figure each, in this order.
+pub const FIGURE_METRICS: [&str; 10] = [
+    "success_rate",
+    "collision_rate",
+    "crash_rate",
+    "out_of_road_rate",
+    "accel_mean",
+    "accel_max",
+    "reward_mean",
+    "reward_max",
+    "length_mean",
+    "length_max",
+];
+
+#[derive(Debug, Clone)]
+pub struct ReportOptions {
+    /// Column order of the methods; methods found but not listed follow, sorted.
+    pub methods: Vec<String>,
+    /// Order of the scenes; scenes found but not listed follow, sorted.
+    pub scenes: Vec<String>,
+    /// Success rate of the time-to-success table.
+    pub success_threshold: f64,
+    /// Episodes a training window needs before its success rate counts for that table.
+    pub min_window_episodes: usize,
+    /// Points of each curve on the common agent-step axis.
+    pub curve_points: usize,
+}
+
+impl Default for ReportOptions {
+    fn default() -> Self {
+        ReportOptions {
+            methods: Vec::new(),
+            scenes: Vec::new(),
+            success_threshold: 0.8,
+            min_window_episodes: 100,
+            curve_points: 120,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    pub dir: String,
+    pub method: String,
+    pub scene: String,
+    pub seed: u64,
+    pub agent_steps: u64,
+    pub wall_s: f64,
+    pub evaluations: usize,
+    pub unreadable_progress_lines: usize,
+    pub reached: Option<Reach>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Skipped {
+    pub dir: String,
+    pub reason: String,
+}
+
+/// One method on one scene.
+#[derive(Debug, Clone, Serialize)]
+pub struct GroupSummary {
+    pub scene: String,
+    pub method: String,
+    pub seeds: Vec<u64>,
+    pub source: Source,
+    /// Mean ± interval over seeds per metric key; None where no run has the metric.
+    pub metrics: BTreeMap<String, Option<Estimate>>,
+    pub mean_agent_steps: f64,
+    pub mean_wall_s: f64,
+    /// Seeds that reached the success threshold, and the mean agent-steps and wall time
+    /// they took.
+    pub reached_seeds: usize,
+    pub mean_reach: Option<Reach>,
+    /// Best windowed success of any seed, and where.
+    pub best_success: Option<(f64, Reach)>,
+}
+
+/// What the report found and wrote; also written as `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    pub runs: Vec<RunSummary>,
+    pub skipped: Vec<Skipped>,
+    pub methods: Vec<String>,
+    pub scenes: Vec<String>,
+    pub groups: Vec<GroupSummary>,
+    /// Figure files relative to the output directory.
+    pub figures: Vec<String>,
+    pub success_threshold: f64,
+}
+
+/// Reads the runs under `paths`, writes the report into `out`.
+pub fn run(paths: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::Result<Summary> {
+    let dirs = runs::discover(paths)?;
+    let mut loaded = Vec::new();
+    let mut skipped = Vec::new();
+    for dir in dirs {
+        match runs::load(&dir) {
+            Ok(run) => loaded.push(run),
+            Err(e) => {
+                tracing::warn!(run = %dir.display(), error = format!("{e:#}"), "run skipped");
+                skipped.push(Skipped {
+                    dir: dir.display().to_string(),
+                    reason: format!("{e:#}"),
+                });
+            }
+        }
+    }
+    anyhow::ensure!(!loaded.is_empty(), "no readable run among {paths:?}");
+    let methods = ordered(&options.methods, loaded.iter().map(|r| &r.method));
+    let scenes = ordered(&options.scenes, loaded.iter().map(|r| &r.scene));
+
+    let mut groups = Vec::new();
+    for scene in &scenes {
+        for method in &methods {
+            let mut members: Vec<&Run> = loaded
+                .iter()
+                .filter(|r| &r.scene == scene && &r.method == method)
+                .collect();
+            if members.is_empty() {
+                continue;
+            }
+            members.sort_by_key(|r| r.seed);
+            groups.push(group(scene, method, &members, options));
+        }
+    }
+
+    let figures_dir = out.join("figures");
+    std::fs::create_dir_all(&figures_dir)
+        .with_context(|| format!("creating {}", figures_dir.display()))?;
+    let mut figures = Vec::new();
+    for key in FIGURE_METRICS {
+        let figure = figure(key, &loaded, &methods, &scenes, options.curve_points);
+        let png = format!("figures/{key}.png");
+        let svg = format!("figures/{key}.svg");
+        plot::write(&figure, &out.join(&png), &out.join(&svg))?;
+        figures.push(png);
+        figures.push(svg);
+    }
+
+    let summary = Summary {
+        runs: loaded
+            .iter()
+            .map(|r| RunSummary {
+                dir: r.dir.display().to_string(),
+                method: r.method.clone(),
+                scene: r.scene.clone(),
+                seed: r.seed,
+                agent_steps: r.agent_steps(),
+                wall_s: r.wall_s(),
+                evaluations: r.evals.len(),
+                unreadable_progress_lines: r.bad_lines,
+                reached: aggregate::first_reach(
+                    r,
+                    options.success_threshold,
+                    options.min_window_episodes,
+                ),
+            })
+            .collect(),
+        skipped,
+        methods,
+        scenes,
+        groups,
+        figures,
+        success_threshold: options.success_threshold,
+    };
+    let markdown = markdown(&summary, options);
+    write(&out.join("report.md"), markdown.as_bytes())?;
+    write(
+        &out.join("summary.json"),
+        (serde_json::to_string_pretty(&summary)? + "\n").as_bytes(),
+    )?;
+    Ok(summary)
+}
+
+fn write(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+/// `preferred` names that occur, in that order, then the other names found, sorted.
+fn ordered<'a>(preferred: &[String], found: impl Iterator<Item = &'a String>) -> Vec<String> {
+    let found: std::collections::BTreeSet<&String> = found.collect();
+    let mut order: Vec<String> = preferred
+        .iter()
+        .filter(|p| found.contains(p))
+        .cloned()
+        .collect();
+    for name in found {
+        if !order.contains(name) {
+            order.push(name.clone());
+        }
+    }
+    order
+}
+
+fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -> GroupSummary {
+    let source = aggregate::group_source(members);
+    let metrics = METRICS
+        .iter()
+        .map(|m| {
+            (
+                m.key.to_string(),
+                aggregate::across_seeds(members, m.key, source),
+            )
+        })
+        .collect();
+    let reaches: Vec<Reach> = members
+        .iter()
+        .filter_map(|r| {
+            aggregate::first_reach(r, options.success_threshold, options.min_window_episodes)
+        })
+        .collect();
+    let mean_reach = (!reaches.is_empty()).then(|| Reach {
+        agent_steps: reaches.iter().map(|r| r.agent_steps).sum::<u64>() / reaches.len() as u64,
+        elapsed_s: reaches.iter().map(|r| r.elapsed_s).sum::<f64>() / reaches.len() as f64,
+    });
+    let best_success = members
+        .iter()
+        .filter_map(|r| aggregate::best_success(r, options.min_window_episodes))
+        .fold(None, |best: Option<(f64, Reach)>, b| match best {
+            Some(a) if a.0 >= b.0 => Some(a),
+            _ => Some(b),
+        });
+    let n = members.len() as f64;
+    GroupSummary {
+        scene: scene.to_string(),
+        method: method.to_string(),
+        seeds: members.iter().map(|r| r.seed).collect(),
+        source,
+        metrics,
+        mean_agent_steps: members.iter().map(|r| r.agent_steps() as f64).sum::<f64>() / n,
+        mean_wall_s: members.iter().map(|r| r.wall_s()).sum::<f64>() / n,
+        reached_seeds: reaches.len(),
+        mean_reach,
+        best_success,
+    }
+}
+
+fn figure(
+    key: &str,
+    runs: &[Run],
+    methods: &[String],
+    scenes: &[String],
+    points: usize,
+) -> plot::Figure {
+    let def = metric_def(key);
+    let label = def.map_or(key, |d| d.label);
+    let unit = def.map_or("", |d| d.unit);
+    let panels = scenes
+        .iter()
+        .map(|scene| plot::Panel {
+            title: scene.clone(),
+            series: methods
+                .iter()
+                .enumerate()
+                .filter_map(|(colour, method)| {
+                    let members: Vec<&Run> = runs
+                        .iter()
+                        .filter(|r| &r.scene == scene && &r.method == method)
+                        .collect();
+                    (!members.is_empty()).then(|| plot::Series {
+                        colour,
+                        band: aggregate::band(&members, key, points),
+                    })
+                })
+                .collect(),
+        })
+        .collect();
+    plot::Figure {
+        title: format!("{label} during training"),
+        y_label: if unit.is_empty() {
+            label.to_string()
+        } else {
+            format!("{label} ({unit})")
+        },
+        share: key.ends_with("_rate") && key != "collision_rate",
+        panels,
+        legend: methods
+            .iter()
+            .enumerate()
+            .map(|(i, m)| (m.clone(), i))
+            .collect(),
+    }
+}
+
+/// `mean ± half-width`, or the value alone with its single seed, or a dash.
+fn cell(estimate: Option<&Estimate>) -> String {
+    match estimate {
+        None => "—".to_string(),
+        Some(e) => match e.half_width() {
+            Some(half) => format!("{} ± {}", format_number(e.value), format_number(half)),
+            None => format!("{} (1 seed)", format_number(e.value)),
+        },
+    }
+}
+
+fn markdown(summary: &Summary, options: &ReportOptions) -> String {
+    let mut md = String::from("# Junction experiment report\n\n");
+    let _ = writeln!(
+        md,
+        "{} runs ({} methods × {} scenes); made by `learner report`.\n",
+        summary.runs.len(),
+        summary.methods.len(),
+        summary.scenes.len()
+    );
+    let bad_lines: usize = summary
+        .runs
+        .iter()
+        .map(|r| r.unreadable_progress_lines)
+        .sum();
+    if bad_lines > 0 {
+        let _ = writeln!(
+            md,
+            "{bad_lines} unreadable progress line(s) skipped (see `summary.json`).\n"
+        );
+    }
+    if !summary.skipped.is_empty() {
+        md.push_str("Runs left out (unreadable):\n\n");
+        for s in &summary.skipped {
+            let _ = writeln!(md, "- `{}`: {}", s.dir, s.reason);
+        }
+        md.push('\n');
+    }
+    for scene in &summary.scenes {
+        let groups: Vec<&GroupSummary> = summary
+            .groups
+            .iter()
+            .filter(|g| &g.scene == scene)
+            .collect();
+        let _ = writeln!(md, "## Table 1 — {scene}\n");
+        md.push_str(
+            "Mean ± 95 % confidence half-width over seeds (Student's t on the per-seed values). \
+             Source per column (row *Source*): `eval` = `actor eval` of the final checkpoint \
+             (the policy's mean action on held-out seeds), `training` = the last training \
+             window of `progress.jsonl` (the stochastic policy; no per-300-step counts). \
+             ↑ higher is better, ↓ lower is better; the best mean of a row is in bold.\n\n",
+        );
+        md.push_str("| Metric |");
+        for g in &groups {
+            let _ = write!(md, " {} |", g.method);
+        }
+        md.push_str("\n|---|");
+        md.push_str(&"---|".repeat(groups.len()));
+        md.push('\n');
+        for def in &METRICS {
+            let values: Vec<Option<&Estimate>> = groups
+                .iter()
+                .map(|g| g.metrics.get(def.key).and_then(Option::as_ref))
+                .collect();
+            let best = best_columns(&values, def.higher_is_better);
+            let arrow = if def.higher_is_better { "↑" } else { "↓" };
+            let unit = if def.unit.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", def.unit)
+            };
+            let _ = write!(md, "| {}{unit} {arrow} |", def.label);
+            for (i, value) in values.iter().enumerate() {
+                let text = cell(*value);
+                if best.contains(&i) {
+                    let _ = write!(md, " **{text}** |");
+                } else {
+                    let _ = write!(md, " {text} |");
+                }
+            }
+            md.push('\n');
+        }
+        let row = |md: &mut String, name: &str, f: &dyn Fn(&GroupSummary) -> String| {
+            let _ = write!(md, "| {name} |");
+            for g in &groups {
+                let _ = write!(md, " {} |", f(g));
+            }
+            md.push('\n');
+        };
+        row(&mut md, "Seeds", &|g| {
+            g.seeds
+                .iter()
+                .map(u64::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        });
+        row(&mut md, "Source", &|g| match g.source {
+            Source::Eval => "eval".into(),
+            Source::Training => "training".into(),
+        });
+        row(&mut md, "Agent-steps trained (mean)", &|g| {
+            plot::steps_label(g.mean_agent_steps)
+        });
+        row(&mut md, "Wall time per run (s, mean)", &|g| {
+            format!("{:.0}", g.mean_wall_s)
+        });
+        md.push('\n');
+    }
+
+    let _ = writeln!(
+        md,
+        "## Time to success ≥ {}\n\nFirst progress line whose training window (at least {} \
+         episodes) reached the success rate; means over the seeds that reached it.\n",
+        options.success_threshold, options.min_window_episodes
+    );
+    md.push_str(
+        "| Scene | Method | Seeds reaching | Agent-steps to reach | Wall time to reach (s) | Best window success (at agent-steps) |\n|---|---|---|---|---|---|\n",
+    );
+    for g in &summary.groups {
+        let (steps, wall) = match g.mean_reach {
+            Some(r) => (
+                plot::steps_label(r.agent_steps as f64),
+                format!("{:.0}", r.elapsed_s),
+            ),
+            None => ("not reached".to_string(), "—".to_string()),
+        };
+        let best = match g.best_success {
+            Some((s, at)) => format!("{s:.3} ({})", plot::steps_label(at.agent_steps as f64)),
+            None => "—".to_string(),
+        };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {}/{} | {steps} | {wall} | {best} |",
+            g.scene,
+            g.method,
+            g.reached_seeds,
+            g.seeds.len()
+        );
+    }
+    md.push_str("\n## Figures\n\nLines: mean over seeds of the training window (the last `run.stats_window_episodes` episodes) against agent-steps consumed; shading: range over seeds.\n\n");
+    for key in FIGURE_METRICS {
+        let label = metric_def(key).map_or(key, |d| d.label);
+        let _ = writeln!(
+            md,
+            "![{label}](figures/{key}.png) ([SVG](figures/{key}.svg))\n"
+        );
+    }
+    md
+}
+
+/// The columns with the best mean of a row: every column tied for best, none when fewer than
+/// two columns have a value or all are equal.
+fn best_columns(values: &[Option<&Estimate>], higher_is_better: bool) -> Vec<usize> {
+    let present: Vec<(usize, f64)> = values
+        .iter()
+        .enumerate()
+        .filter_map(|(i, v)| v.map(|e| (i, e.value)))
+        .collect();
+    let best = present
+        .iter()
+        .map(|p| if higher_is_better { p.1 } else { -p.1 })
+        .fold(f64::NEG_INFINITY, f64::max);
+    let winners: Vec<usize> = present
+        .iter()
+        .filter(|p| (if higher_is_better { p.1 } else { -p.1 }) == best)
+        .map(|p| p.0)
+        .collect();
+    if present.len() < 2 || winners.len() == present.len() {
+        Vec::new()
+    } else {
+        winners
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn preferred_order_first_then_the_rest_sorted() {
+        let found = ["ippo", "cl", "zeta", "ccppo-mf"].map(String::from);
+        let order = ordered(&["cl".into(), "copo".into(), "ippo".into()], found.iter());
+        assert_eq!(order, ["cl", "ippo", "ccppo-mf", "zeta"]);
+    }
+
+    #[test]
+    fn best_respects_the_direction() {
+        let e = |v: f64| junction_common::confidence::mean_t(&[v]);
+        let (a, b) = (e(0.2), e(0.5));
+        assert_eq!(best_columns(&[Some(&a), None, Some(&b)], true), [2]);
+        assert_eq!(best_columns(&[Some(&a), None, Some(&b)], false), [0]);
+        assert_eq!(best_columns(&[Some(&a), Some(&b), Some(&b)], true), [1, 2]);
+        assert!(
+            best_columns(&[Some(&a), Some(&a)], true).is_empty(),
+            "all tied"
+        );
+        assert!(best_columns(&[Some(&a), None], true).is_empty());
+        assert_eq!(cell(Some(&a)), "0.2000 (1 seed)");
+        assert_eq!(cell(None), "—");
+    }
+}

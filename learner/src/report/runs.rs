@@ -1,0 +1,167 @@
+//! Reading run directories: the training curve (`progress.jsonl`), what was trained
+//! (`config.toml`) and evaluations (`eval/*.json` from `actor eval`).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+
+use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
+
+use crate::progress::ProgressLine;
+
+/// One training run.
+#[derive(Debug, Clone)]
+pub struct Run {
+    pub dir: PathBuf,
+    /// `learner.algo`.
+    pub method: String,
+    /// `scenario.name`.
+    pub scene: String,
+    /// `run.seed`.
+    pub seed: u64,
+    /// Progress lines in file order.
+    pub lines: Vec<ProgressLine>,
+    /// Lines that did not parse (a line cut short by a crash, say); skipped.
+    pub bad_lines: usize,
+    /// Evaluations of this run on its own scenario.
+    pub evals: Vec<EvalReport>,
+}
+
+impl Run {
+    pub fn last(&self) -> Option<&ProgressLine> {
+        self.lines.last()
+    }
+
+    /// Agent-steps consumed by the end of the run.
+    pub fn agent_steps(&self) -> u64 {
+        self.last().map_or(0, |l| l.agent_steps)
+    }
+
+    /// Wall-clock seconds of training (of the last learner process, on a resumed run).
+    pub fn wall_s(&self) -> f64 {
+        self.last().map_or(0.0, |l| l.elapsed_s)
+    }
+}
+
+/// The run directories among `paths`: each path that holds a `progress.jsonl`, else its
+/// subdirectories that do (so `learner report results/x/runs` takes a whole grid).
+pub fn discover(paths: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    let mut dirs = Vec::new();
+    for path in paths {
+        if path.join("progress.jsonl").is_file() {
+            dirs.push(path.clone());
+            continue;
+        }
+        let entries =
+            std::fs::read_dir(path).with_context(|| format!("reading {}", path.display()))?;
+        let mut found: Vec<PathBuf> = entries
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.join("progress.jsonl").is_file())
+            .collect();
+        anyhow::ensure!(
+            !found.is_empty(),
+            "{} holds no progress.jsonl, nor do its subdirectories",
+            path.display()
+        );
+        found.sort();
+        dirs.append(&mut found);
+    }
+    Ok(dirs)
+}
+
+/// Reads one run directory.
+pub fn load(dir: &Path) -> anyhow::Result<Run> {
+    let progress = dir.join("progress.jsonl");
+    let text = std::fs::read_to_string(&progress)
+        .with_context(|| format!("reading {}", progress.display()))?;
+    let mut lines = Vec::new();
+    let mut bad_lines = 0;
+    for line in text.lines().filter(|l| !l.trim().is_empty()) {
+        match serde_json::from_str::<ProgressLine>(line) {
+            Ok(parsed) => lines.push(parsed),
+            Err(_) => bad_lines += 1,
+        }
+    }
+    anyhow::ensure!(
+        !lines.is_empty(),
+        "{} holds no readable progress line",
+        progress.display()
+    );
+    let config = read_config(&dir.join("config.toml"))?;
+    let last = &lines[lines.len() - 1];
+    let method = config_str(&config, "learner", "algo")
+        .or_else(|| Some(last.algorithm.clone()).filter(|a| !a.is_empty()))
+        .with_context(|| format!("{}: no learner.algo in config.toml", dir.display()))?;
+    let scene = config_str(&config, "scenario", "name")
+        .or_else(|| Some(last.scenario.clone()).filter(|s| !s.is_empty()))
+        .with_context(|| format!("{}: no scenario.name in config.toml", dir.display()))?;
+    let seed = config
+        .as_ref()
+        .and_then(|c| c.get("run")?.get("seed")?.as_integer())
+        .and_then(|s| u64::try_from(s).ok())
+        .or(last.seed)
+        .with_context(|| format!("{}: no run.seed in config.toml", dir.display()))?;
+    let evals = read_evals(&dir.join("eval"), &scene)?;
+    Ok(Run {
+        dir: dir.to_path_buf(),
+        method,
+        scene,
+        seed,
+        lines,
+        bad_lines,
+        evals,
+    })
+}
+
+fn read_config(path: &Path) -> anyhow::Result<Option<toml::Table>> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let table = text
+        .parse::<toml::Table>()
+        .with_context(|| format!("{} is not TOML", path.display()))?;
+    Ok(Some(table))
+}
+
+fn config_str(config: &Option<toml::Table>, section: &str, key: &str) -> Option<String> {
+    config
+        .as_ref()?
+        .get(section)?
+        .get(key)?
+        .as_str()
+        .map(str::to_string)
+}
+
+/// Every `eval/*.json` of this scene's scenario, by file name; other scenarios are left out.
+fn read_evals(dir: &Path, scene: &str) -> anyhow::Result<Vec<EvalReport>> {
+    if !dir.is_dir() {
+        return Ok(Vec::new());
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "json"))
+        .collect();
+    files.sort();
+    let mut evals = Vec::new();
+    for file in files {
+        let text = std::fs::read_to_string(&file)
+            .with_context(|| format!("reading {}", file.display()))?;
+        let report: EvalReport = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not an actor eval result", file.display()))?;
+        anyhow::ensure!(
+            report.format == EVAL_FORMAT,
+            "{} has format {:?}; this build reads {EVAL_FORMAT:?}",
+            file.display(),
+            report.format
+        );
+        if report.scenario == scene {
+            evals.push(report);
+        }
+    }
+    Ok(evals)
+}
