@@ -13,6 +13,7 @@ use anyhow::Context;
 use tokio::sync::mpsc;
 
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
+use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::proto;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::weights;
@@ -74,7 +75,9 @@ pub fn weights_message(
         protocol_version: PROTOCOL_VERSION,
         version,
         format: "safetensors".into(),
-        data: policy.to_bytes(version).context("serialising the policy")?,
+        data: algorithm
+            .policy_bytes(version)
+            .context("serialising the policy")?,
         obs_dim: policy.obs_dim() as u32,
         action_dim: policy.action_dim() as u32,
         run_finished,
@@ -85,6 +88,8 @@ pub fn weights_message(
 struct Reporter {
     /// Episodes finished since this process started.
     episodes: u64,
+    /// The LCF angle after the newest update (none yet in this process).
+    lcf: Option<LcfSnapshot>,
     last: Instant,
     last_agent_steps: u64,
     started: Instant,
@@ -102,6 +107,7 @@ impl Trainer {
         let budget = &config.run;
         let mut reporter = Reporter {
             episodes: 0,
+            lcf: None,
             last: started,
             last_agent_steps: self.progress.agent_steps,
             started,
@@ -166,7 +172,9 @@ impl Trainer {
                 Err(_) => {}
             }
             if pending_env_steps >= config.ppo.train_batch_env_steps {
-                self.update(&pending)?;
+                if let Some(stats) = self.update(&pending)? {
+                    reporter.lcf.get_or_insert_default().record(&stats);
+                }
                 pending.clear();
                 pending_env_steps = 0;
             }
@@ -175,6 +183,14 @@ impl Trainer {
             }
         }
         self.report(&mut reporter, &window)?;
+        if let Some(lcf) = &reporter.lcf {
+            tracing::info!(
+                mean_deg = format!("{:.2}", lcf.mean_deg),
+                std_deg = format!("{:.2}", lcf.std_deg),
+                by_neighbours = %lcf.by_neighbours_text(),
+                "final LCF angle φ"
+            );
+        }
         // The checkpoint counts every agent-step received, so the stage it implies is logged.
         self.advance_stage();
         self.checkpoint()?;
@@ -188,14 +204,15 @@ impl Trainer {
         Ok(self.progress)
     }
 
-    fn update(&mut self, batch: &[RolloutFragment]) -> anyhow::Result<()> {
+    /// One update on `batch`; its statistics, or none when it was skipped.
+    fn update(&mut self, batch: &[RolloutFragment]) -> anyhow::Result<Option<UpdateStats>> {
         let _span = tracing::info_span!("update", version = self.progress.version + 1).entered();
         let started = Instant::now();
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
             Err(e) => {
                 tracing::warn!(error = %e, "update skipped");
-                return Ok(());
+                return Ok(None);
             }
         };
         let seconds = started.elapsed().as_secs_f64();
@@ -220,7 +237,7 @@ impl Trainer {
         if every > 0 && self.progress.updates % every == 0 {
             self.checkpoint()?;
         }
-        Ok(())
+        Ok(Some(stats))
     }
 
     /// Moves to the curriculum stage the consumed agent-steps call for, before a broadcast.
@@ -244,7 +261,7 @@ impl Trainer {
     }
 
     fn checkpoint(&self) -> anyhow::Result<()> {
-        let policy = self.algorithm.policy().to_bytes(self.progress.version)?;
+        let policy = self.algorithm.policy_bytes(self.progress.version)?;
         let state_tensors = self.algorithm.state_tensors();
         let refs: Vec<(String, &tch::Tensor)> =
             state_tensors.iter().map(|(n, t)| (n.clone(), t)).collect();
@@ -312,6 +329,7 @@ impl Trainer {
             "agent_steps_per_s": rate,
             "scenario": scenario,
             "window": summary,
+            "lcf": reporter.lcf.as_ref().map(LcfSnapshot::to_json),
         });
         let mut file = OpenOptions::new()
             .create(true)
@@ -321,6 +339,56 @@ impl Trainer {
         writeln!(file, "{line}")
             .with_context(|| format!("writing {}", self.progress_log.display()))?;
         Ok(())
+    }
+}
+
+/// The LCF angle after the newest update, for progress lines and the final log; a
+/// neighbour-count bucket keeps its last value while batches have no agent in it (like the
+/// gauge).
+#[derive(Default)]
+struct LcfSnapshot {
+    mean_deg: f64,
+    std_deg: f64,
+    by_neighbours: [Option<f64>; NEIGHBOUR_BUCKETS.len()],
+}
+
+impl LcfSnapshot {
+    fn record(&mut self, stats: &UpdateStats) {
+        self.mean_deg = stats.lcf_mean_deg;
+        self.std_deg = stats.lcf_std_deg;
+        for (kept, new) in self
+            .by_neighbours
+            .iter_mut()
+            .zip(stats.lcf_phi_by_neighbours)
+        {
+            *kept = new.or(*kept);
+        }
+    }
+
+    fn buckets(&self) -> impl Iterator<Item = (&'static str, f64)> + '_ {
+        NEIGHBOUR_BUCKETS
+            .into_iter()
+            .zip(self.by_neighbours)
+            .filter_map(|(bucket, phi)| Some((bucket, phi?)))
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        let by: serde_json::Map<String, serde_json::Value> = self
+            .buckets()
+            .map(|(bucket, phi)| (bucket.to_string(), serde_json::json!(phi)))
+            .collect();
+        serde_json::json!({
+            "mean_deg": self.mean_deg,
+            "std_deg": self.std_deg,
+            "phi_deg_by_neighbours": by,
+        })
+    }
+
+    fn by_neighbours_text(&self) -> String {
+        self.buckets()
+            .map(|(bucket, phi)| format!("{bucket}: {phi:.2}"))
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 }
 
