@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod grpc;
+pub mod lcf_column;
 pub mod metrics;
 pub mod render;
 pub mod replay;

@@ -45,6 +45,19 @@ fn ccppo_concat_learns_to_cross_the_tiny_intersection() {
     learns_to_cross_the_tiny_intersection("ccppo-concat");
 }
 
+/// The tiny scenario has one agent, so it never has neighbours: these prove the learned LCFs'
+/// plumbing (CoPO's φ column from actor to learner, the meta-gradient on every update) while
+/// they train like IPPO.
+#[test]
+fn copo_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("copo");
+}
+
+#[test]
+fn dynamic_lcf_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("dynamic-lcf");
+}
+
 /// Trains `algo` (`learner.algo`) on the tiny scenario until the success bar or the limits.
 fn learns_to_cross_the_tiny_intersection(algo: &str) {
     // A test that failed while holding the lock poisons it; the others still run.
