@@ -494,9 +494,10 @@ impl RunConfig {
             problems.push("lcf.phi_deg must be in [-90, 90] and lcf.alpha, lcf.beta finite".into());
         }
         let copo = &self.copo;
-        if !(copo.initial_mean_deg.abs() < 90.0)
-            || !(copo.initial_std_deg > 0.0 && copo.initial_std_deg.is_finite())
-        {
+        // Written so NaN fails too.
+        let mean_ok = copo.initial_mean_deg.abs() < 90.0;
+        let std_ok = copo.initial_std_deg > 0.0 && copo.initial_std_deg.is_finite();
+        if !(mean_ok && std_ok) {
             problems.push(
                 "copo.initial_mean_deg must be in (-90, 90) and copo.initial_std_deg > 0".into(),
             );
@@ -509,7 +510,8 @@ impl RunConfig {
             ("copo", copo.lcf_lr, copo.meta_iterations),
             ("dynamic_lcf", dynamic.lcf_lr, dynamic.meta_iterations),
         ] {
-            if !(lr >= 0.0 && lr.is_finite()) {
+            let lr_ok = lr >= 0.0 && lr.is_finite();
+            if !lr_ok {
                 problems.push(format!("{key}.lcf_lr must be a number >= 0"));
             }
             if iterations == 0 {

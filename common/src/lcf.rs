@@ -375,7 +375,7 @@ mod tests {
         };
         let samples: Vec<f32> = (0..1000).map(|_| wide.sample(&mut rng)).collect();
         assert!(samples.iter().all(|p| p.abs() <= 90.0));
-        assert!(samples.iter().any(|&p| p == 90.0), "clipped at 90°");
+        assert!(samples.contains(&90.0), "clipped at 90°");
         // The observation encoding maps ±90° to the ends of [0, 1] and back.
         assert_eq!(phi_observation(-90.0), 0.0);
         assert_eq!(phi_observation(0.0), 0.5);

@@ -244,8 +244,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                     let cost = batch.heads.len() - 1;
                     let cost_advantages = scale(batch.heads[cost].advantages.index_select(0, &idx));
                     advantages = safety.mixed_advantage(&advantages, &cost_advantages);
-                    extra_v_loss =
-                        extra_v_loss + head_loss(safety.cost_value(&critic_inputs), cost);
+                    extra_v_loss += head_loss(safety.cost_value(&critic_inputs), cost);
                 }
                 let (mean, log_std) = self.policy.distribution(&obs);
                 let log_probs =
