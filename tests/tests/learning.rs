@@ -135,6 +135,13 @@ fn learns_to_cross_the_tiny_intersection(algo: &str) {
         hit["agent_steps"],
         hit["elapsed_s"].as_f64().unwrap_or(0.0),
     );
+    // Every algorithm reports its LCF angle by neighbour count; the lone agent has none.
+    let lonely = &hit["lcf"]["phi_deg_by_neighbours"]["0"];
+    assert!(lonely.is_number(), "progress line without φ: {hit}");
+    if algo == "copo" {
+        // CoPO's agents draw φ from a distribution of learned, positive spread.
+        assert!(hit["lcf"]["std_deg"].as_f64().unwrap_or(0.0) > 0.0, "{hit}");
+    }
     let start = first_full_window.expect("a full window of episodes before success");
     assert!(
         start <= 0.2,
