@@ -12,10 +12,12 @@ use tonic::transport::{Channel, Endpoint};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::PROTOCOL_VERSION;
+use junction_common::lcf::LcfDistribution;
 use junction_common::policy::GaussianPolicy;
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
+use crate::lcf_column::blob_distribution;
 use crate::metrics::ActorMetrics;
 use crate::rollout::{RolloutWorker, derive_seed};
 
@@ -82,7 +84,14 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
     }
     let scenario =
         ScenarioConfig::from_toml(&reply.scenario_toml).context("the learner's scenario")?;
-    if reply.obs_dim as usize != scenario.obs_dim() || reply.action_dim as usize != ACTION_DIM {
+    // The policy takes the scenario's observation, or that and CoPO's LCF angle.
+    let policy_obs_dims = [
+        scenario.obs_dim(),
+        scenario.obs_dim() + LcfDistribution::OBS_COLUMNS,
+    ];
+    if !policy_obs_dims.contains(&(reply.obs_dim as usize))
+        || reply.action_dim as usize != ACTION_DIM
+    {
         bail!(
             "the learner's dimensions {}×{} do not match its scenario",
             reply.obs_dim,
@@ -225,35 +234,44 @@ fn rollout_loop(
 ) -> anyhow::Result<()> {
     let _span =
         tracing::info_span!("rollout", actor = %actor_id, scenario = %scenario.name).entered();
-    let load = |w: &proto::PolicyWeights| -> anyhow::Result<GaussianPolicy> {
+    type Loaded = (GaussianPolicy, Option<LcfDistribution>);
+    let load = |w: &proto::PolicyWeights| -> anyhow::Result<Loaded> {
         let (policy, meta) = GaussianPolicy::from_bytes(&w.data, tch::Device::Cpu)
             .context("decoding policy weights")?;
-        if meta.obs_layout_version != OBS_LAYOUT_VERSION || policy.obs_dim() != scenario.obs_dim() {
+        let lcf = blob_distribution(&w.data).context("reading the policy's LCF distribution")?;
+        let columns = lcf.map_or(0, |_| LcfDistribution::OBS_COLUMNS);
+        if meta.obs_layout_version != OBS_LAYOUT_VERSION
+            || policy.obs_dim() != scenario.obs_dim() + columns
+        {
             bail!(
                 "policy v{} was trained for another observation layout or size",
                 w.version
             );
         }
-        Ok(policy)
+        Ok((policy, lcf))
     };
     let initial = Arc::clone(&weights.borrow_and_update());
+    let (policy, lcf) = load(&initial)?;
     let mut worker = RolloutWorker::new(
         &scenario,
         scenes,
         seed,
         fragment_length,
-        load(&initial)?,
+        policy,
         initial.version,
         actor_id,
     )
     .context("building the scenes")?;
+    worker.set_lcf_distribution(lcf);
     metrics.policy_version.set(initial.version as i64);
     apply_active_agents(&mut worker, &initial, metrics)?;
     while !finished.load(Ordering::Relaxed) {
         if weights.has_changed().unwrap_or(false) {
             let latest = Arc::clone(&weights.borrow_and_update());
             if latest.version != worker.policy_version() {
-                worker.set_policy(load(&latest)?, latest.version);
+                let (policy, lcf) = load(&latest)?;
+                worker.set_policy(policy, latest.version);
+                worker.set_lcf_distribution(lcf);
                 metrics.policy_version.set(latest.version as i64);
                 metrics.policy_switches.inc();
                 tracing::debug!(version = latest.version, "switched policy");

@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod eval;
 pub mod grpc;
+pub mod lcf_column;
 pub mod metrics;
 pub mod render;
 pub mod replay;

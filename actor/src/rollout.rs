@@ -10,10 +10,12 @@ use rand_distr::{Distribution, StandardNormal};
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
+use junction_common::lcf::LcfDistribution;
 use junction_common::policy::GaussianPolicy;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::WeightsError;
 
+use crate::lcf_column::LcfColumn;
 use crate::sim::{Scene, SimError};
 
 /// Where the time of a fragment went, for the actor's metrics.
@@ -29,8 +31,9 @@ struct FragmentBuilder {
 }
 
 impl FragmentBuilder {
-    fn new(scene: &Scene, steps: usize) -> Self {
-        let (agents, obs_dim) = (scene.slots(), scene.obs_dim());
+    /// `extra_columns`: values the policy takes beyond the scene's observation.
+    fn new(scene: &Scene, steps: usize, extra_columns: usize) -> Self {
+        let (agents, obs_dim) = (scene.slots(), scene.obs_dim() + extra_columns);
         let cells = steps * agents;
         let fragment = RolloutFragment {
             scenario: scene.config().name.clone(),
@@ -65,6 +68,8 @@ pub struct RolloutWorker {
     rng: ChaCha8Rng,
     actor_id: String,
     sequence: u64,
+    /// CoPO's per-agent LCF angle, when the policy takes one.
+    lcf: LcfColumn,
     /// Reused per step: observations of all live agents, their noise, and where each row goes.
     batch_obs: Vec<f32>,
     batch_noise: Vec<f32>,
@@ -85,6 +90,10 @@ impl RolloutWorker {
         actor_id: String,
     ) -> Result<Self, SimError> {
         let scenes = build_scenes(scenario, scenes, seed)?;
+        let lcf = LcfColumn::new(
+            derive_seed(seed, LCF_STREAM),
+            scenes.iter().map(Scene::slots),
+        );
         let mut worker = RolloutWorker {
             scenario: scenario.clone(),
             scene_seed: seed,
@@ -95,6 +104,7 @@ impl RolloutWorker {
             rng: ChaCha8Rng::seed_from_u64(derive_seed(seed, 0)),
             actor_id,
             sequence: 0,
+            lcf,
             batch_obs: Vec::new(),
             batch_noise: Vec::new(),
             batch_rows: Vec::new(),
@@ -136,6 +146,7 @@ impl RolloutWorker {
         let scenario = self.scenario.with_agents(agents);
         self.scenes = build_scenes(&scenario, self.scenes.len(), scene_seed)?;
         self.scene_seed = scene_seed;
+        self.lcf.reset(self.scenes.iter().map(Scene::slots));
         self.size_buffers();
         Ok(true)
     }
@@ -150,22 +161,36 @@ impl RolloutWorker {
         self.policy_version = version;
     }
 
+    /// The LCF distribution that came with the policy (CoPO's), or none: agents spawned from
+    /// now on draw from it, and fragments carry the φ column while it is set.
+    pub fn set_lcf_distribution(&mut self, distribution: Option<LcfDistribution>) {
+        self.lcf.set_distribution(distribution);
+    }
+
     /// Runs `fragment_length` steps of every scene; returns one fragment per scene.
     pub fn collect(&mut self) -> Result<(Vec<RolloutFragment>, Timings), WeightsError> {
+        let columns = self.lcf.columns();
         let mut builders: Vec<FragmentBuilder> = self
             .scenes
             .iter()
-            .map(|s| FragmentBuilder::new(s, self.fragment_length))
+            .map(|s| FragmentBuilder::new(s, self.fragment_length, columns))
             .collect();
         let mut timings = Timings::default();
         for _ in 0..self.fragment_length {
             let started = Instant::now();
+            for (k, scene) in self.scenes.iter().enumerate() {
+                self.lcf.spawn(k, scene.alive());
+            }
             self.infer()?;
             timings.inference_s += started.elapsed().as_secs_f64();
             let started = Instant::now();
             for (k, (scene, builder)) in self.scenes.iter_mut().zip(&mut builders).enumerate() {
                 let f = &mut builder.fragment;
-                f.obs.extend_from_slice(scene.observations());
+                f.obs.extend_from_slice(&self.lcf.observations(
+                    k,
+                    scene.observations(),
+                    scene.obs_dim(),
+                ));
                 f.alive.extend_from_slice(scene.alive());
                 f.actions.extend_from_slice(&self.scene_actions[k]);
                 f.log_probs.extend_from_slice(&self.scene_log_probs[k]);
@@ -176,6 +201,7 @@ impl RolloutWorker {
                 f.neighbour_ids.extend_from_slice(ids);
                 f.lcf_features.extend_from_slice(scene.lcf_features());
                 let result = scene.step(&self.scene_actions[k]);
+                self.lcf.finish(k, &result.dones);
                 f.rewards.extend_from_slice(&result.rewards);
                 f.costs.extend_from_slice(&result.costs);
                 f.dones.extend_from_slice(&result.dones);
@@ -190,15 +216,19 @@ impl RolloutWorker {
             .scenes
             .iter()
             .zip(builders)
-            .map(|(scene, builder)| {
+            .enumerate()
+            .map(|(k, (scene, builder))| {
                 let mut f = builder.fragment;
                 // Agents alive and not done at the last step bootstrap from their observation now.
                 f.bootstrap_obs = vec![0.0; f.agents * f.obs_dim];
+                let now = self
+                    .lcf
+                    .observations(k, scene.observations(), scene.obs_dim());
                 let continuing: Vec<usize> =
                     (0..f.agents).filter(|&s| f.needs_bootstrap(s)).collect();
                 for slot in continuing {
                     let row = slot * f.obs_dim..(slot + 1) * f.obs_dim;
-                    f.bootstrap_obs[row.clone()].copy_from_slice(&scene.observations()[row]);
+                    f.bootstrap_obs[row.clone()].copy_from_slice(&now[row]);
                 }
                 f.actor_id = self.actor_id.clone();
                 f.behaviour_version = self.policy_version;
@@ -216,7 +246,10 @@ impl RolloutWorker {
         self.batch_obs.clear();
         self.batch_rows.clear();
         for (k, scene) in self.scenes.iter().enumerate() {
-            let obs_dim = scene.obs_dim();
+            let obs_dim = scene.obs_dim() + self.lcf.columns();
+            let rows = self
+                .lcf
+                .observations(k, scene.observations(), scene.obs_dim());
             for (slot, _) in scene
                 .alive()
                 .iter()
@@ -224,7 +257,7 @@ impl RolloutWorker {
                 .filter(|(_, alive)| **alive)
             {
                 self.batch_obs
-                    .extend_from_slice(&scene.observations()[slot * obs_dim..(slot + 1) * obs_dim]);
+                    .extend_from_slice(&rows[slot * obs_dim..(slot + 1) * obs_dim]);
                 self.batch_rows.push((k, slot));
             }
         }
@@ -250,6 +283,10 @@ impl RolloutWorker {
         Ok(())
     }
 }
+
+/// The stream of the worker's seed that draws CoPO's LCF angles (scenes use 1…, the action
+/// noise 0, rebuilt scenes `u64::MAX`).
+const LCF_STREAM: u64 = u64::MAX - 1;
 
 /// `count` scenes of `scenario`, scene `k` seeded from stream `k + 1` of `seed`.
 fn build_scenes(
@@ -335,6 +372,59 @@ mod tests {
         assert!(!w.set_active_agents(100).unwrap());
         let (fragments, _) = w.collect().unwrap();
         assert!(fragments.iter().all(|f| f.agents == 8));
+    }
+
+    #[test]
+    fn with_copos_distribution_every_agent_carries_its_own_phi_for_its_whole_episode() {
+        let scenario = ScenarioConfig {
+            agents: 8,
+            ..ScenarioConfig::default()
+        };
+        let obs_dim = scenario.obs_dim();
+        let policy = GaussianPolicy::new(
+            tch::Device::Cpu,
+            (obs_dim + 1) as i64,
+            ACTION_DIM as i64,
+            &[16],
+            0.0,
+        );
+        let mut w = RolloutWorker::new(&scenario, 2, 5, 40, policy, 0, "test".into()).unwrap();
+        w.set_lcf_distribution(Some(LcfDistribution {
+            mean_deg: 10.0,
+            std_deg: 30.0,
+        }));
+        let mut distinct = std::collections::HashSet::new();
+        for _ in 0..3 {
+            let (fragments, _) = w.collect().unwrap();
+            for f in &fragments {
+                f.validate(Some((obs_dim + 1, ACTION_DIM))).unwrap();
+                let phi = |cell: usize| f.obs[cell * f.obs_dim + obs_dim];
+                for t in 0..f.steps {
+                    for slot in 0..f.agents {
+                        let cell = f.index(t, slot);
+                        if !f.alive[cell] {
+                            assert_eq!(phi(cell), 0.0, "an empty slot's φ value is 0");
+                            continue;
+                        }
+                        assert!((0.0..=1.0).contains(&phi(cell)));
+                        distinct.insert(phi(cell).to_bits());
+                        // The same agent one step later keeps its φ.
+                        if t + 1 < f.steps && !f.dones[cell] {
+                            assert_eq!(phi(f.index(t + 1, slot)), phi(cell));
+                        }
+                    }
+                }
+                // Continuing agents bootstrap with their φ too.
+                let last = f.steps - 1;
+                for slot in (0..f.agents).filter(|&s| f.needs_bootstrap(s)) {
+                    assert_eq!(
+                        f.bootstrap_obs[(slot + 1) * f.obs_dim - 1],
+                        phi(f.index(last, slot))
+                    );
+                }
+            }
+        }
+        assert!(distinct.len() > 8, "agents draw their own φ: {distinct:?}");
     }
 
     #[test]

@@ -51,6 +51,8 @@ pub struct RunConfig {
     pub ppo: PpoConfig,
     pub ccppo: CcppoConfig,
     pub lcf: LcfConfig,
+    pub copo: CopoConfig,
+    pub dynamic_lcf: DynamicLcfConfig,
     pub safety: SafetyConfig,
     pub learner: LearnerSection,
     pub curriculum: CurriculumConfig,
@@ -273,6 +275,32 @@ pub struct LcfConfig {
     pub beta: f32,
 }
 
+/// CoPO's learned LCF distribution (`learner.algo = "copo"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CopoConfig {
+    /// μ of N(μ, σ) before any meta-gradient step, degrees.
+    pub initial_mean_deg: f32,
+    /// σ before any meta-gradient step, degrees.
+    pub initial_std_deg: f32,
+    /// Adam step size of the meta-gradient on (μ, log σ).
+    pub lcf_lr: f64,
+    /// Passes over the batch's minibatches of the meta-gradient after each PPO update.
+    pub meta_iterations: usize,
+}
+
+/// The paper's dynamic LCF φ = f_ψ(S_N) (`learner.algo = "dynamic-lcf"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DynamicLcfConfig {
+    /// Hidden layer sizes of f_ψ (tanh).
+    pub hidden: Vec<i64>,
+    /// Adam step size of the meta-gradient on ψ.
+    pub lcf_lr: f64,
+    /// Passes over the batch's minibatches of the meta-gradient after each PPO update.
+    pub meta_iterations: usize,
+}
+
 /// The centralised-critic baselines' own settings (`ccppo-concat`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -303,6 +331,10 @@ pub enum AlgoKind {
     CcppoMf,
     /// Centralised-critic PPO, critic on own obs + k nearest neighbours' obs and actions.
     CcppoConcat,
+    /// CoPO: a learned distribution over per-agent LCF angles, meta-gradient (`[copo]`).
+    Copo,
+    /// The paper's dynamic LCF φ = f(S_N), meta-gradient (`[dynamic_lcf]`).
+    DynamicLcf,
 }
 
 impl AlgoKind {
@@ -312,6 +344,17 @@ impl AlgoKind {
             AlgoKind::Cl => "cl",
             AlgoKind::CcppoMf => "ccppo-mf",
             AlgoKind::CcppoConcat => "ccppo-concat",
+            AlgoKind::Copo => "copo",
+            AlgoKind::DynamicLcf => "dynamic-lcf",
+        }
+    }
+
+    /// Values the algorithm's policy takes beyond the scenario's observation (CoPO: its agent's
+    /// LCF angle).
+    pub fn extra_obs_columns(self) -> usize {
+        match self {
+            AlgoKind::Copo => crate::lcf::LcfDistribution::OBS_COLUMNS,
+            _ => 0,
         }
     }
 }
@@ -399,6 +442,12 @@ impl RunConfig {
         Ok(config)
     }
 
+    /// Values per observation row the policy takes, which is what fragments carry: the
+    /// scenario's observation plus what the algorithm appends.
+    pub fn policy_obs_dim(&self) -> usize {
+        self.scenario.obs_dim() + self.learner.algo.extra_obs_columns()
+    }
+
     /// The effective configuration as TOML (recorded in checkpoints and run directories).
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise config: {e}"))
@@ -443,6 +492,31 @@ impl RunConfig {
         if !(-90.0..=90.0).contains(&lcf.phi_deg) || !lcf.alpha.is_finite() || !lcf.beta.is_finite()
         {
             problems.push("lcf.phi_deg must be in [-90, 90] and lcf.alpha, lcf.beta finite".into());
+        }
+        let copo = &self.copo;
+        // Written so NaN fails too.
+        let mean_ok = copo.initial_mean_deg.abs() < 90.0;
+        let std_ok = copo.initial_std_deg > 0.0 && copo.initial_std_deg.is_finite();
+        if !(mean_ok && std_ok) {
+            problems.push(
+                "copo.initial_mean_deg must be in (-90, 90) and copo.initial_std_deg > 0".into(),
+            );
+        }
+        let dynamic = &self.dynamic_lcf;
+        if dynamic.hidden.is_empty() || dynamic.hidden.iter().any(|&h| h <= 0) {
+            problems.push("dynamic_lcf.hidden must list at least one positive layer size".into());
+        }
+        for (key, lr, iterations) in [
+            ("copo", copo.lcf_lr, copo.meta_iterations),
+            ("dynamic_lcf", dynamic.lcf_lr, dynamic.meta_iterations),
+        ] {
+            let lr_ok = lr >= 0.0 && lr.is_finite();
+            if !lr_ok {
+                problems.push(format!("{key}.lcf_lr must be a number >= 0"));
+            }
+            if iterations == 0 {
+                problems.push(format!("{key}.meta_iterations must be > 0"));
+            }
         }
         if self.ccppo.neighbours == 0 {
             problems.push("ccppo.neighbours must be > 0".to_string());

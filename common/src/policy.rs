@@ -246,6 +246,16 @@ impl GaussianPolicy {
 
     /// The weights blob broadcast to actors and stored in checkpoints.
     pub fn to_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        self.to_bytes_with_metadata(version, BTreeMap::new())
+    }
+
+    /// The blob with `extra` metadata beside the architecture's (e.g. CoPO's LCF
+    /// distribution, which actors need to build the observation this policy takes).
+    pub fn to_bytes_with_metadata(
+        &self,
+        version: u64,
+        extra: BTreeMap<String, String>,
+    ) -> Result<Vec<u8>, WeightsError> {
         let named = self.named_tensors();
         let refs: Vec<(String, &Tensor)> = named.iter().map(|(n, t)| (n.clone(), t)).collect();
         let hidden = self
@@ -254,7 +264,8 @@ impl GaussianPolicy {
             .map(i64::to_string)
             .collect::<Vec<_>>()
             .join(",");
-        let metadata = BTreeMap::from([
+        let mut metadata = extra;
+        metadata.extend([
             ("version".to_string(), version.to_string()),
             (
                 "obs_layout_version".to_string(),
@@ -311,11 +322,12 @@ impl GaussianPolicy {
     }
 }
 
-/// log N(actions | mean, exp(log_std)), summed over action dimensions.
+/// log N(actions | mean, exp(log_std)), summed over action dimensions (in the inputs'
+/// precision).
 pub fn gaussian_log_prob(mean: &Tensor, log_std: &Tensor, actions: &Tensor) -> Tensor {
     let z = (actions - mean) / log_std.exp();
     let per_dim = z.square() * -0.5 - log_std - 0.5 * (2.0 * std::f64::consts::PI).ln();
-    per_dim.sum_dim_intlist(-1, false, Kind::Float)
+    per_dim.sum_dim_intlist(-1, false, per_dim.kind())
 }
 
 /// Entropy of the diagonal Gaussian, summed over action dimensions.

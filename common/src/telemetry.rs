@@ -41,6 +41,7 @@ pub mod names {
     pub const LEARNER_LAGRANGE_MULTIPLIER: &str = "junction_learner_lagrange_multiplier";
     pub const LEARNER_LCF_MEAN: &str = "junction_learner_lcf_mean_degrees";
     pub const LEARNER_LCF_STD: &str = "junction_learner_lcf_std_degrees";
+    pub const LEARNER_LCF_PHI: &str = "junction_learner_lcf_phi_degrees";
     pub const LEARNER_NONFINITE_MINIBATCHES: &str =
         "junction_learner_nonfinite_loss_minibatches_total";
     pub const LEARNER_POLICY_LOSS: &str = "junction_learner_policy_loss";

@@ -71,18 +71,23 @@ pub struct Decoded {
     pub metadata: BTreeMap<String, String>,
 }
 
+/// The metadata of a blob, read from its header alone (no tensor is decoded).
+pub fn metadata(bytes: &[u8]) -> Result<BTreeMap<String, String>, WeightsError> {
+    let (_, header) =
+        SafeTensors::read_metadata(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
+    match header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)) {
+        Some(json) => serde_json::from_str(json).map_err(|_| WeightsError::Metadata {
+            key: METADATA_KEY.to_string(),
+        }),
+        None => Ok(BTreeMap::new()),
+    }
+}
+
 impl Decoded {
     pub fn decode(bytes: &[u8]) -> Result<Self, WeightsError> {
         let st =
             SafeTensors::deserialize(bytes).map_err(|e| WeightsError::Format(format!("{e:?}")))?;
-        let (_, header) = SafeTensors::read_metadata(bytes)
-            .map_err(|e| WeightsError::Format(format!("{e:?}")))?;
-        let metadata = match header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)) {
-            Some(json) => serde_json::from_str(json).map_err(|_| WeightsError::Metadata {
-                key: METADATA_KEY.to_string(),
-            })?,
-            None => BTreeMap::new(),
-        };
+        let metadata = metadata(bytes)?;
         let mut tensors = HashMap::new();
         for (name, view) in st.tensors() {
             if view.dtype() != Dtype::F32 {

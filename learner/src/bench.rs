@@ -45,7 +45,7 @@ pub fn synthetic_batch(
         config.rollout.fragment_length,
         config.scenario.agent_count(),
     );
-    let obs_dim = config.scenario.obs_dim();
+    let obs_dim = config.policy_obs_dim();
     let cells = steps * agents;
     let fragments = config.ppo.train_batch_env_steps.div_ceil(steps);
     let per_agent = SYNTHETIC_NEIGHBOURS.min(agents - 1);
@@ -116,8 +116,7 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::algo::ippo::Ippo;
-    use tch::Device;
+    use crate::algo::shared_ppo::testing::ippo;
 
     #[test]
     fn the_synthetic_batch_is_a_valid_training_batch_of_the_run_shape() {
@@ -126,7 +125,7 @@ mod tests {
         config.scenario.agents = 3;
         config.rollout.fragment_length = 10;
         config.ppo.train_batch_env_steps = 25;
-        let ippo = Ippo::new(&config.ppo, config.scenario.obs_dim(), 2, Device::Cpu, 1);
+        let ippo = ippo(&config, config.scenario.obs_dim(), 2);
         let batch = synthetic_batch(&config, &ippo, 1).unwrap();
         assert_eq!(batch.len(), 3, "25 env steps need 3 fragments of 10");
         for fragment in batch {

@@ -8,6 +8,7 @@ use prometheus::{
 use junction_common::telemetry::names;
 
 use junction_common::fragment::{FragmentError, Outcome, RolloutFragment};
+use junction_common::lcf::NEIGHBOUR_BUCKETS;
 
 use crate::algo::{Stage, UpdateStats};
 use crate::stats::WindowSummary;
@@ -50,6 +51,7 @@ pub struct LearnerMetrics {
     learning_rate: Gauge,
     lcf_mean: Gauge,
     lcf_std: Gauge,
+    lcf_phi: GaugeVec,
     lagrange_multiplier: Gauge,
     nonfinite_minibatches: IntCounter,
     policy_loss: Gauge,
@@ -116,6 +118,14 @@ impl LearnerMetrics {
             &["scenario"],
         )?;
         registry.register(Box::new(simulated_seconds.clone()))?;
+        let lcf_phi = GaugeVec::new(
+            Opts::new(
+                names::LEARNER_LCF_PHI,
+                "Mean LCF angle phi after the last update of the batch's agents with this many neighbours (0, 1-2, 3-5, 6+), degrees; unchanged while a batch has none.",
+            ),
+            &["neighbours"],
+        )?;
+        registry.register(Box::new(lcf_phi.clone()))?;
         Ok(LearnerMetrics {
             policy_version: int_gauge(
                 names::LEARNER_POLICY_VERSION,
@@ -225,12 +235,13 @@ impl LearnerMetrics {
             )?,
             lcf_mean: gauge(
                 names::LEARNER_LCF_MEAN,
-                "Mean LCF angle phi over the last batch, degrees (0 = selfish, 90 = fully cooperative).",
+                "Mean LCF angle phi after the last update, degrees (0 = selfish, 90 = fully cooperative): the fixed phi, CoPO's learned mean, or the dynamic LCF's phi over the batch.",
             )?,
             lcf_std: gauge(
                 names::LEARNER_LCF_STD,
-                "Standard deviation of the LCF angle phi over the last batch, degrees.",
+                "Spread of the LCF angle phi after the last update, degrees: CoPO's learned sigma, or the standard deviation of the dynamic LCF's phi over the batch (0 for a fixed phi).",
             )?,
+            lcf_phi,
             nonfinite_minibatches: counter(
                 names::LEARNER_NONFINITE_MINIBATCHES,
                 "Minibatches skipped because their loss was NaN or infinite.",
@@ -282,6 +293,9 @@ impl LearnerMetrics {
         }
         self.collisions.with_label_values(&[scenario]);
         self.simulated_seconds.with_label_values(&[scenario]);
+        for bucket in NEIGHBOUR_BUCKETS {
+            self.lcf_phi.with_label_values(&[bucket]);
+        }
     }
 
     /// Counts what one received fragment simulated: its episodes, collisions and scene time.
@@ -310,6 +324,11 @@ impl LearnerMetrics {
         self.lcf_mean.set(stats.lcf_mean_deg);
         self.lagrange_multiplier.set(stats.lagrange_multiplier);
         self.lcf_std.set(stats.lcf_std_deg);
+        for (bucket, phi) in NEIGHBOUR_BUCKETS.iter().zip(stats.lcf_phi_by_neighbours) {
+            if let Some(phi) = phi {
+                self.lcf_phi.with_label_values(&[bucket]).set(phi);
+            }
+        }
         self.nonfinite_minibatches
             .inc_by(stats.skipped_minibatches as u64);
         self.update_seconds.observe(seconds);

@@ -11,9 +11,12 @@
 //! | `agent_steps`, `env_steps`, `samples_trained` | agent-steps and scene steps consumed, samples trained (restored on resume) |
 //! | `agent_steps_per_s` | consumption rate since the previous line |
 //! | `episodes_total`, `collisions_total`, `sim_seconds_total` | agent episodes, collisions (agents' and human drivers') and simulated scene seconds received by this process |
+//! | `lcf` | after the first update of this process: the LCF angle φ of the newest batch, `mean_deg`, `std_deg` and `phi_deg_by_neighbours` (mean φ per neighbour-count bucket "0", "1-2", "3-5", "6+"; a bucket keeps its last value while batches have no agent in it) |
 //! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
 //!
 //! Fields are only ever added: every reader takes a missing field as its default.
+
+use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
@@ -38,6 +41,16 @@ pub struct ProgressLine {
     pub collisions_total: u64,
     pub sim_seconds_total: f64,
     pub window: WindowSummary,
+    pub lcf: Option<LcfProgress>,
+}
+
+/// The learned (or fixed) LCF angle of the newest update, degrees.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LcfProgress {
+    pub mean_deg: f64,
+    pub std_deg: f64,
+    pub phi_deg_by_neighbours: BTreeMap<String, f64>,
 }
 
 #[cfg(test)]

@@ -46,8 +46,9 @@ impl Shared {
         }
     }
 
+    /// Values per observation row in fragments: what the policy takes.
     fn obs_dim(&self) -> usize {
-        self.config.scenario.obs_dim()
+        self.config.policy_obs_dim()
     }
 
     /// Counts a refused fragment and logs its cause once at warn level.

@@ -13,6 +13,7 @@ use anyhow::Context;
 use tokio::sync::mpsc;
 
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
+use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::proto;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::weights;
@@ -20,7 +21,7 @@ use junction_common::weights;
 use crate::algo::{Algorithm, Stage, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
 use crate::metrics::DROP_STALE;
-use crate::progress::ProgressLine;
+use crate::progress::{LcfProgress, ProgressLine};
 use crate::server::Shared;
 use crate::stats::EpisodeWindow;
 
@@ -75,7 +76,9 @@ pub fn weights_message(
         protocol_version: PROTOCOL_VERSION,
         version,
         format: "safetensors".into(),
-        data: policy.to_bytes(version).context("serialising the policy")?,
+        data: algorithm
+            .policy_bytes(version)
+            .context("serialising the policy")?,
         obs_dim: policy.obs_dim() as u32,
         action_dim: policy.action_dim() as u32,
         run_finished,
@@ -88,6 +91,8 @@ struct Reporter {
     episodes: u64,
     collisions: u64,
     sim_seconds: f64,
+    /// The LCF angle after the newest update (none yet in this process).
+    lcf: Option<LcfSnapshot>,
     last: Instant,
     last_agent_steps: u64,
     started: Instant,
@@ -107,6 +112,7 @@ impl Trainer {
             episodes: 0,
             collisions: 0,
             sim_seconds: 0.0,
+            lcf: None,
             last: started,
             last_agent_steps: self.progress.agent_steps,
             started,
@@ -173,7 +179,9 @@ impl Trainer {
                 Err(_) => {}
             }
             if pending_env_steps >= config.ppo.train_batch_env_steps {
-                self.update(&pending)?;
+                if let Some(stats) = self.update(&pending)? {
+                    reporter.lcf.get_or_insert_default().record(&stats);
+                }
                 pending.clear();
                 pending_env_steps = 0;
             }
@@ -182,6 +190,14 @@ impl Trainer {
             }
         }
         self.report(&mut reporter, &window)?;
+        if let Some(lcf) = &reporter.lcf {
+            tracing::info!(
+                mean_deg = format!("{:.2}", lcf.mean_deg),
+                std_deg = format!("{:.2}", lcf.std_deg),
+                by_neighbours = %lcf.by_neighbours_text(),
+                "final LCF angle φ"
+            );
+        }
         // The checkpoint counts every agent-step received, so the stage it implies is logged.
         self.advance_stage();
         self.checkpoint()?;
@@ -195,14 +211,15 @@ impl Trainer {
         Ok(self.progress)
     }
 
-    fn update(&mut self, batch: &[RolloutFragment]) -> anyhow::Result<()> {
+    /// One update on `batch`; its statistics, or none when it was skipped.
+    fn update(&mut self, batch: &[RolloutFragment]) -> anyhow::Result<Option<UpdateStats>> {
         let _span = tracing::info_span!("update", version = self.progress.version + 1).entered();
         let started = Instant::now();
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
             Err(e) => {
                 tracing::warn!(error = %e, "update skipped");
-                return Ok(());
+                return Ok(None);
             }
         };
         let seconds = started.elapsed().as_secs_f64();
@@ -227,7 +244,7 @@ impl Trainer {
         if every > 0 && self.progress.updates % every == 0 {
             self.checkpoint()?;
         }
-        Ok(())
+        Ok(Some(stats))
     }
 
     /// Moves to the curriculum stage the consumed agent-steps call for, before a broadcast.
@@ -251,7 +268,7 @@ impl Trainer {
     }
 
     fn checkpoint(&self) -> anyhow::Result<()> {
-        let policy = self.algorithm.policy().to_bytes(self.progress.version)?;
+        let policy = self.algorithm.policy_bytes(self.progress.version)?;
         let state_tensors = self.algorithm.state_tensors();
         let refs: Vec<(String, &tch::Tensor)> =
             state_tensors.iter().map(|(n, t)| (n.clone(), t)).collect();
@@ -328,6 +345,7 @@ impl Trainer {
             collisions_total: reporter.collisions,
             sim_seconds_total: reporter.sim_seconds,
             window: summary,
+            lcf: reporter.lcf.as_ref().map(LcfSnapshot::to_progress),
         };
         let line = serde_json::to_string(&line).context("encoding a progress line")?;
         let mut file = OpenOptions::new()
@@ -338,6 +356,55 @@ impl Trainer {
         writeln!(file, "{line}")
             .with_context(|| format!("writing {}", self.progress_log.display()))?;
         Ok(())
+    }
+}
+
+/// The LCF angle after the newest update, for progress lines and the final log; a
+/// neighbour-count bucket keeps its last value while batches have no agent in it (like the
+/// gauge).
+#[derive(Default)]
+struct LcfSnapshot {
+    mean_deg: f64,
+    std_deg: f64,
+    by_neighbours: [Option<f64>; NEIGHBOUR_BUCKETS.len()],
+}
+
+impl LcfSnapshot {
+    fn record(&mut self, stats: &UpdateStats) {
+        self.mean_deg = stats.lcf_mean_deg;
+        self.std_deg = stats.lcf_std_deg;
+        for (kept, new) in self
+            .by_neighbours
+            .iter_mut()
+            .zip(stats.lcf_phi_by_neighbours)
+        {
+            *kept = new.or(*kept);
+        }
+    }
+
+    fn buckets(&self) -> impl Iterator<Item = (&'static str, f64)> + '_ {
+        NEIGHBOUR_BUCKETS
+            .into_iter()
+            .zip(self.by_neighbours)
+            .filter_map(|(bucket, phi)| Some((bucket, phi?)))
+    }
+
+    fn to_progress(&self) -> LcfProgress {
+        LcfProgress {
+            mean_deg: self.mean_deg,
+            std_deg: self.std_deg,
+            phi_deg_by_neighbours: self
+                .buckets()
+                .map(|(bucket, phi)| (bucket.to_string(), phi))
+                .collect(),
+        }
+    }
+
+    fn by_neighbours_text(&self) -> String {
+        self.buckets()
+            .map(|(bucket, phi)| format!("{bucket}: {phi:.2}"))
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 }
 

@@ -45,6 +45,19 @@ fn ccppo_concat_learns_to_cross_the_tiny_intersection() {
     learns_to_cross_the_tiny_intersection("ccppo-concat");
 }
 
+/// The tiny scenario has one agent, so it never has neighbours: these prove the learned LCFs'
+/// plumbing (CoPO's φ column from actor to learner, the meta-gradient on every update) while
+/// they train like IPPO.
+#[test]
+fn copo_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("copo");
+}
+
+#[test]
+fn dynamic_lcf_learns_to_cross_the_tiny_intersection() {
+    learns_to_cross_the_tiny_intersection("dynamic-lcf");
+}
+
 /// Trains `algo` (`learner.algo`) on the tiny scenario until the success bar or the limits.
 fn learns_to_cross_the_tiny_intersection(algo: &str) {
     // A test that failed while holding the lock poisons it; the others still run.
@@ -122,6 +135,13 @@ fn learns_to_cross_the_tiny_intersection(algo: &str) {
         hit["agent_steps"],
         hit["elapsed_s"].as_f64().unwrap_or(0.0),
     );
+    // Every algorithm reports its LCF angle by neighbour count; the lone agent has none.
+    let lonely = &hit["lcf"]["phi_deg_by_neighbours"]["0"];
+    assert!(lonely.is_number(), "progress line without φ: {hit}");
+    if algo == "copo" {
+        // CoPO's agents draw φ from a distribution of learned, positive spread.
+        assert!(hit["lcf"]["std_deg"].as_f64().unwrap_or(0.0) > 0.0, "{hit}");
+    }
     let start = first_full_window.expect("a full window of episodes before success");
     assert!(
         start <= 0.2,

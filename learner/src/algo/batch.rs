@@ -15,15 +15,32 @@ use super::gae::{Estimates, Trajectories, gae};
 pub struct TrainBatch {
     /// Raw observations [n, obs_dim]; algorithms normalise with the policy's statistics.
     pub obs: Tensor,
-    /// The critic's input rows [n, width], built by the algorithm's [`CriticInput`] from
+    /// The critics' input rows [n, width], built by the algorithm's [`CriticInput`] from
     /// normalised observations (fixed for the whole update, like the statistics).
     pub critic_inputs: Tensor,
     pub actions: Tensor,
     pub old_log_probs: Tensor,
+    /// One per [`Head`] given to [`assemble`], in that order.
+    pub heads: Vec<HeadEstimates>,
+    /// Live neighbours of each row's agent at its step (host side, for reports).
+    pub neighbour_counts: Vec<usize>,
+    pub len: usize,
+}
+
+/// What GAE made of one value head's reward signal, per row.
+pub struct HeadEstimates {
     pub advantages: Tensor,
     pub returns: Tensor,
     pub old_values: Tensor,
-    pub len: usize,
+}
+
+/// A value head: a reward signal, the critic that values it, and its discount.
+pub struct Head<'a> {
+    /// The signal for every cell of each fragment, in the fragments' order.
+    pub rewards: Vec<Cow<'a, [f32]>>,
+    /// Critic-input rows → values [m].
+    pub value: Box<dyn Fn(&Tensor) -> Tensor + 'a>,
+    pub gamma: f32,
 }
 
 /// A fragment with its observations normalised by the policy's statistics: what critic inputs
@@ -50,11 +67,7 @@ impl NormalizedFragment<'_> {
     /// Neighbours of `slot` at step `t` (nearest first) that hold an agent at `t`; the filter
     /// keeps a malformed list from feeding an empty cell's zeros to the critic.
     pub fn live_neighbours(&self, t: usize, slot: usize) -> impl Iterator<Item = usize> + '_ {
-        self.raw
-            .neighbours(t, slot)
-            .iter()
-            .map(|&n| n as usize)
-            .filter(move |&n| n != slot && self.raw.alive[self.raw.index(t, n)])
+        live_neighbours(self.raw, t, slot)
     }
 }
 
@@ -98,16 +111,14 @@ fn normalized(
     )
 }
 
-/// Builds the critic rows of every alive cell and of every bootstrap observation with `input`
-/// (from observations passed through `normalize`), evaluates `value_of` (rows → values [m]) on
-/// all of them in one pass, then runs GAE per fragment on the rewards `rewards_of` gives it.
+/// Builds the critic rows of every alive cell and of every bootstrap observation once with
+/// `input` (from observations passed through `normalize`), then for each head evaluates its
+/// critic on all of them in one pass and runs GAE per fragment on its reward signal.
 pub fn assemble(
     fragments: &[RolloutFragment],
     input: &impl CriticInput,
-    rewards_of: impl for<'f> Fn(&'f RolloutFragment) -> Cow<'f, [f32]>,
+    heads: &[Head],
     normalize: impl Fn(&Tensor) -> Tensor,
-    value_of: impl Fn(&Tensor) -> Tensor,
-    gamma: f32,
     lambda: f32,
     device: Device,
 ) -> Result<TrainBatch, tch::TchError> {
@@ -140,24 +151,78 @@ pub fn assemble(
     let critic_inputs = Tensor::from_slice(&rows)
         .reshape([all_rows as i64, width as i64])
         .to_device(device);
-    let values: Vec<f32> = tch::no_grad(|| {
-        Vec::<f32>::try_from(
-            value_of(&critic_inputs)
-                .to_device(Device::Cpu)
-                .to_kind(Kind::Float)
-                .flatten(0, -1),
-        )
-    })?;
-    let (alive_values, bootstrap_pool) = values.split_at(alive_rows);
+    let n = alive_rows as i64;
+    let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
+    let mut estimates = Vec::with_capacity(heads.len());
+    for head in heads {
+        let values: Vec<f32> = tch::no_grad(|| {
+            Vec::<f32>::try_from(
+                (head.value)(&critic_inputs)
+                    .to_device(Device::Cpu)
+                    .to_kind(Kind::Float)
+                    .flatten(0, -1),
+            )
+        })?;
+        let (advantages, returns, old_values) =
+            head_estimates(fragments, head, &values, alive_rows, lambda);
+        estimates.push(HeadEstimates {
+            advantages: to(&advantages),
+            returns: to(&returns),
+            old_values: to(&old_values),
+        });
+    }
 
     let mut obs = Vec::with_capacity(alive_rows * obs_dim);
     let mut actions = Vec::new();
     let mut old_log_probs = Vec::new();
+    let mut neighbour_counts = Vec::with_capacity(alive_rows);
+    for f in fragments {
+        for t in 0..f.steps {
+            for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
+                let cell = f.index(t, slot);
+                obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
+                actions
+                    .extend_from_slice(&f.actions[cell * f.action_dim..(cell + 1) * f.action_dim]);
+                old_log_probs.push(f.log_probs[cell]);
+                neighbour_counts.push(live_neighbours(f, t, slot).count());
+            }
+        }
+    }
+    Ok(TrainBatch {
+        obs: to(&obs).reshape([n, obs_dim as i64]),
+        critic_inputs: critic_inputs.narrow(0, 0, n),
+        actions: to(&actions).reshape([n, action_dim as i64]),
+        old_log_probs: to(&old_log_probs),
+        heads: estimates,
+        neighbour_counts,
+        len: alive_rows,
+    })
+}
+
+/// Neighbours of `slot` at step `t` (nearest first) that hold an agent at `t`.
+fn live_neighbours(f: &RolloutFragment, t: usize, slot: usize) -> impl Iterator<Item = usize> + '_ {
+    f.neighbours(t, slot)
+        .iter()
+        .map(|&n| n as usize)
+        .filter(move |&n| n != slot && f.alive[f.index(t, n)])
+}
+
+/// GAE of one head over every fragment; `values` holds the head's value of every alive row,
+/// then of every bootstrap row, in assembly order. Returns advantages, returns and values of
+/// the alive rows.
+fn head_estimates(
+    fragments: &[RolloutFragment],
+    head: &Head,
+    values: &[f32],
+    alive_rows: usize,
+    lambda: f32,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let (alive_values, bootstrap_pool) = values.split_at(alive_rows.min(values.len()));
     let mut advantages = Vec::with_capacity(alive_rows);
     let mut returns = Vec::with_capacity(alive_rows);
     let mut old_values = Vec::with_capacity(alive_rows);
     let (mut next_alive, mut next_bootstrap) = (alive_values.iter(), bootstrap_pool.iter());
-    for f in fragments {
+    for (f, rewards) in fragments.iter().zip(&head.rewards) {
         let cells = f.steps * f.agents;
         let mut cell_values = vec![0.0f32; cells];
         for (cell, value) in cell_values.iter_mut().enumerate() {
@@ -174,7 +239,6 @@ pub fn assemble(
                 }
             })
             .collect();
-        let rewards = rewards_of(f);
         let Estimates {
             advantages: adv,
             returns: ret,
@@ -182,36 +246,22 @@ pub fn assemble(
             &Trajectories {
                 steps: f.steps,
                 agents: f.agents,
-                rewards: &rewards,
+                rewards,
                 dones: &f.dones,
                 alive: &f.alive,
                 values: &cell_values,
                 bootstrap_values: &bootstrap_values,
             },
-            gamma,
+            head.gamma,
             lambda,
         );
         for cell in (0..cells).filter(|&c| f.alive[c]) {
-            obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
-            actions.extend_from_slice(&f.actions[cell * f.action_dim..(cell + 1) * f.action_dim]);
-            old_log_probs.push(f.log_probs[cell]);
             advantages.push(adv[cell]);
             returns.push(ret[cell]);
             old_values.push(cell_values[cell]);
         }
     }
-    let n = alive_rows as i64;
-    let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
-    Ok(TrainBatch {
-        obs: to(&obs).reshape([n, obs_dim as i64]),
-        critic_inputs: critic_inputs.narrow(0, 0, n),
-        actions: to(&actions).reshape([n, action_dim as i64]),
-        old_log_probs: to(&old_log_probs),
-        advantages: to(&advantages),
-        returns: to(&returns),
-        old_values: to(&old_values),
-        len: alive_rows,
-    })
+    (advantages, returns, old_values)
 }
 
 /// Index tensors of one epoch's minibatches: a fresh permutation cut into `size` chunks (the

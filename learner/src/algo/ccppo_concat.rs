@@ -21,10 +21,6 @@
 
 use std::iter::repeat_n;
 
-use tch::Device;
-
-use junction_common::config::PpoConfig;
-
 use super::batch::{CriticInput, NormalizedFragment};
 use super::shared_ppo::SharedPpo;
 
@@ -56,34 +52,13 @@ impl CriticInput for Concat {
 
 pub type CcppoConcat = SharedPpo<Concat>;
 
-impl CcppoConcat {
-    pub fn new(
-        config: &PpoConfig,
-        neighbours: usize,
-        obs_dim: usize,
-        action_dim: usize,
-        device: Device,
-        seed: u64,
-    ) -> Self {
-        SharedPpo::with_critic_input(
-            "ccppo-concat",
-            Concat { neighbours },
-            config,
-            obs_dim,
-            action_dim,
-            device,
-            seed,
-        )
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::algo::coordination::FixedLcf;
     use crate::algo::shared_ppo::testing::{
-        assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, unnormalized,
+        assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, small_run, unnormalized,
     };
-    use junction_common::config::RunConfig;
 
     #[test]
     fn concat_rows_on_a_known_neighbourhood() {
@@ -128,8 +103,17 @@ mod tests {
 
     #[test]
     fn checkpoint_state_restores_an_identical_learner() {
-        let mut config = RunConfig::default().ppo;
-        config.hidden = vec![8];
-        assert_checkpoint_round_trip(|| CcppoConcat::new(&config, 4, 2, 2, Device::Cpu, 7));
+        let run = small_run();
+        assert_checkpoint_round_trip(|| -> CcppoConcat {
+            SharedPpo::new(
+                "ccppo-concat",
+                Concat { neighbours: 4 },
+                Box::new(FixedLcf::new(&run.lcf)),
+                &run,
+                2,
+                2,
+                tch::Device::Cpu,
+            )
+        });
     }
 }

@@ -19,10 +19,6 @@
 //! bootstrap observation with the last step's neighbour means: the next step's neighbourhood
 //! is not shipped, and one decision step (0.1 s) changes it little.
 
-use tch::Device;
-
-use junction_common::config::PpoConfig;
-
 use super::batch::{CriticInput, NormalizedFragment};
 use super::shared_ppo::SharedPpo;
 
@@ -59,27 +55,13 @@ impl CriticInput for MeanField {
 
 pub type CcppoMf = SharedPpo<MeanField>;
 
-impl CcppoMf {
-    pub fn new(
-        config: &PpoConfig,
-        obs_dim: usize,
-        action_dim: usize,
-        device: Device,
-        seed: u64,
-    ) -> Self {
-        SharedPpo::with_critic_input(
-            "ccppo-mf", MeanField, config, obs_dim, action_dim, device, seed,
-        )
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::algo::coordination::FixedLcf;
     use crate::algo::shared_ppo::testing::{
-        assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, unnormalized,
+        assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, small_run, unnormalized,
     };
-    use junction_common::config::RunConfig;
 
     #[test]
     fn mean_field_rows_on_a_known_neighbourhood() {
@@ -105,8 +87,17 @@ mod tests {
 
     #[test]
     fn checkpoint_state_restores_an_identical_learner() {
-        let mut config = RunConfig::default().ppo;
-        config.hidden = vec![8];
-        assert_checkpoint_round_trip(|| CcppoMf::new(&config, 2, 2, Device::Cpu, 7));
+        let run = small_run();
+        assert_checkpoint_round_trip(|| -> CcppoMf {
+            SharedPpo::new(
+                "ccppo-mf",
+                MeanField,
+                Box::new(FixedLcf::new(&run.lcf)),
+                &run,
+                2,
+                2,
+                tch::Device::Cpu,
+            )
+        });
     }
 }

@@ -81,6 +81,10 @@ impl Algorithm for Cl {
         self.ippo.policy()
     }
 
+    fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        self.ippo.policy_bytes(version)
+    }
+
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
         self.ippo.update(fragments)
     }

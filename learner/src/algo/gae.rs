@@ -54,6 +54,37 @@ pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
     }
 }
 
+/// GAE's advantages are linear in the rewards: A_k = Σ_j (γλ)^{j−k}·r_j + (terms without
+/// rewards), summed over the steps j ≥ k of the same agent up to its done. This is the
+/// transpose: given a weight c_k per cell, the weight w_j = Σ_k c_k·∂A_k/∂r_j each reward
+/// carries in Σ_k c_k·A_k, computed forwards as w_j = c_j + γλ·w_{j−1} along an agent's steps.
+/// (The dynamic LCF's meta-gradient reaches its coordinated rewards through it.)
+/// `dones` and `alive` are a fragment's, row-major `[step][slot]` like `cotangents`.
+pub fn reward_adjoint(
+    (steps, agents): (usize, usize),
+    dones: &[bool],
+    alive: &[bool],
+    cotangents: &[f32],
+    gamma: f32,
+    lambda: f32,
+) -> Vec<f32> {
+    let mut weights = vec![0.0; steps * agents];
+    for slot in 0..agents {
+        let mut carried = 0.0;
+        for t in 0..steps {
+            let i = t * agents + slot;
+            if !alive[i] {
+                carried = 0.0;
+                continue;
+            }
+            weights[i] = cotangents[i] + gamma * lambda * carried;
+            // The next step is the same agent's unless this one ended it.
+            carried = if dones[i] { 0.0 } else { weights[i] };
+        }
+    }
+    weights
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -92,6 +123,50 @@ mod tests {
                 e.returns[i]
             );
         }
+    }
+
+    #[test]
+    fn the_reward_adjoint_is_the_transpose_of_gae_in_the_rewards() {
+        // The layout of `matches_hand_computed_values`: slot 0 holds agent A (done at t = 1)
+        // then B; slot 1 is empty, then holds C.
+        let (dones, alive) = (
+            [false, false, true, false, false, false],
+            [true, false, true, true, true, true],
+        );
+        let values = [0.5, 0.0, 1.0, 0.2, 0.4, 0.3];
+        let traj = |rewards: &[f32; 6]| -> Vec<f32> {
+            gae(
+                &Trajectories {
+                    steps: 3,
+                    agents: 2,
+                    rewards,
+                    dones: &dones,
+                    alive: &alive,
+                    values: &values,
+                    bootstrap_values: &[2.0, 1.0],
+                },
+                0.9,
+                0.8,
+            )
+            .advantages
+        };
+        let c = [1.0, 5.0, -2.0, 0.5, 3.0, 4.0];
+        let w = reward_adjoint((3, 2), &dones, &alive, &c, 0.9, 0.8);
+        // By hand (γλ = 0.72): A's steps t = 0, 1 (done): w = 1, −2 + 0.72·1; B at t = 2:
+        // w = 3 (a new agent carries nothing); C at t = 1, 2: w = 0.5, 4 + 0.72·0.5; the empty
+        // cell 0.
+        let expected = [1.0, 0.0, -1.28, 0.5, 3.0, 4.36];
+        for (got, want) in w.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{w:?}");
+        }
+        // And it is the transpose: Σ c·(A(r + Δ) − A(r)) = Σ w·Δ for any change Δ.
+        let r = [1.0, 0.0, 2.0, 1.0, 0.5, -1.0];
+        let delta = [0.3, 0.0, -1.0, 2.0, 0.7, 0.1];
+        let shifted: [f32; 6] = std::array::from_fn(|i| r[i] + delta[i]);
+        let (before, after) = (traj(&r), traj(&shifted));
+        let lhs: f32 = (0..6).map(|i| c[i] * (after[i] - before[i])).sum();
+        let rhs: f32 = (0..6).map(|i| w[i] * delta[i]).sum();
+        assert!((lhs - rhs).abs() < 1e-5, "{lhs} vs {rhs}");
     }
 
     #[test]

@@ -14,10 +14,6 @@
 //! The loop is [`SharedPpo`]'s; IPPO is the choice of critic input: the agent's own
 //! observation, nothing else.
 
-use tch::Device;
-
-use junction_common::config::PpoConfig;
-
 use super::batch::{CriticInput, NormalizedFragment};
 use super::shared_ppo::SharedPpo;
 
@@ -36,30 +32,10 @@ impl CriticInput for OwnObservation {
 
 pub type Ippo = SharedPpo<OwnObservation>;
 
-impl Ippo {
-    pub fn new(
-        config: &PpoConfig,
-        obs_dim: usize,
-        action_dim: usize,
-        device: Device,
-        seed: u64,
-    ) -> Self {
-        SharedPpo::with_critic_input(
-            "ippo",
-            OwnObservation,
-            config,
-            obs_dim,
-            action_dim,
-            device,
-            seed,
-        )
-    }
-}
-
 #[cfg(test)]
 mod tests {
-    use super::*;
     use crate::algo::Algorithm;
+    use crate::algo::shared_ppo::testing::ippo;
     use junction_common::config::RunConfig;
     use junction_common::fragment::RolloutFragment;
     use junction_common::policy::GaussianPolicy;
@@ -110,11 +86,13 @@ mod tests {
     #[test]
     fn ppo_moves_the_policy_towards_higher_reward() {
         tch::manual_seed(0);
-        let mut config = RunConfig::default().ppo;
-        config.hidden = vec![16];
-        config.minibatch_size = 64;
-        config.learning_rate = 0.01;
-        let mut algo = Ippo::new(&config, 3, 2, Device::Cpu, 7);
+        let mut run = RunConfig::default();
+        run.run.seed = 7;
+        run.ppo.hidden = vec![16];
+        run.ppo.minibatch_size = 64;
+        run.ppo.learning_rate = 0.01;
+        let config = run.ppo.clone();
+        let mut algo = ippo(&run, 3, 2);
         let start = mean_action(algo.policy());
         for round in 0..30 {
             let fragment = bandit_fragment(algo.policy(), round);
@@ -133,15 +111,16 @@ mod tests {
     #[test]
     fn checkpoint_state_restores_an_identical_learner() {
         tch::manual_seed(1);
-        let mut config = RunConfig::default().ppo;
-        config.hidden = vec![8];
-        let mut a = Ippo::new(&config, 3, 2, Device::Cpu, 7);
+        let mut run = RunConfig::default();
+        run.run.seed = 7;
+        run.ppo.hidden = vec![8];
+        let mut a = ippo(&run, 3, 2);
         a.update(&[bandit_fragment(a.policy(), 1)]).unwrap();
         let blob = a.policy().to_bytes(1).unwrap();
         let state = a.state_tensors();
         let refs: Vec<(String, &Tensor)> = state.iter().map(|(n, t)| (n.clone(), t)).collect();
         let bytes = weights::encode(&refs, Default::default()).unwrap();
-        let mut b = Ippo::new(&config, 3, 2, Device::Cpu, 7);
+        let mut b = ippo(&run, 3, 2);
         b.restore(&blob, &mut Decoded::decode(&bytes).unwrap())
             .unwrap();
         assert_eq!(

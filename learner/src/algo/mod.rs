@@ -5,8 +5,12 @@ pub mod batch;
 pub mod ccppo_concat;
 pub mod ccppo_mf;
 pub mod cl;
+pub mod coordination;
+pub mod copo;
+pub mod dynamic_lcf;
 pub mod gae;
 pub mod ippo;
+pub mod meta_lcf;
 pub mod ppo;
 pub mod safety;
 pub mod shared_ppo;
@@ -15,9 +19,16 @@ use tch::{Device, Tensor};
 
 use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
+use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::policy::GaussianPolicy;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::{Decoded, WeightsError};
+
+use ccppo_concat::Concat;
+use ccppo_mf::MeanField;
+use coordination::{Coordination, FixedLcf};
+use ippo::OwnObservation;
+use shared_ppo::SharedPpo;
 
 /// Diagnostics of one policy update, averaged over its minibatches.
 #[derive(Debug, Clone, Default)]
@@ -33,10 +44,13 @@ pub struct UpdateStats {
     pub grad_norm: f64,
     /// The optimiser's step size during this update.
     pub learning_rate: f64,
-    /// Mean and standard deviation of the LCF angle φ over the batch, degrees (0 and 0 for
-    /// methods without coordination: φ = 0 is IPPO).
+    /// Mean and standard deviation of the LCF angle φ, degrees, after the update: the fixed φ
+    /// (0 and 0 without coordination: φ = 0 is IPPO), CoPO's learned μ and σ, or the dynamic
+    /// LCF's φ = f(S_N) over the batch.
     pub lcf_mean_deg: f64,
     pub lcf_std_deg: f64,
+    /// Mean φ over the batch's agents with 0, 1–2, 3–5, 6+ neighbours (`None`: no such agent).
+    pub lcf_phi_by_neighbours: [Option<f64>; NEIGHBOUR_BUCKETS.len()],
     /// The safety option's Lagrange multiplier after the update (0 when off).
     pub lagrange_multiplier: f64,
     /// Minibatches skipped because their loss was NaN or infinite.
@@ -65,6 +79,11 @@ pub trait Algorithm {
     fn name(&self) -> &'static str;
     /// The policy actors run (broadcast after every update).
     fn policy(&self) -> &GaussianPolicy;
+    /// The policy's blob for broadcasts and checkpoints, with whatever metadata actors need to
+    /// run it (CoPO: its LCF distribution).
+    fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        self.policy().to_bytes(version)
+    }
     /// One update on a batch of fragments.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;
     /// Everything besides the policy needed to resume exactly (critics, optimiser state).
@@ -85,32 +104,58 @@ pub trait Algorithm {
 
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
 pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
-    let (ppo, obs_dim, seed) = (&config.ppo, config.scenario.obs_dim(), config.run.seed);
-    let (lcf, safety) = (&config.lcf, &config.safety);
-    let ippo = || {
-        ippo::Ippo::new(ppo, obs_dim, ACTION_DIM, device, seed)
-            .with_coordination(lcf)
-            .with_safety(safety)
+    let obs_dim = config.policy_obs_dim();
+    let ppo = |name, input, coordination: Box<dyn Coordination>| {
+        SharedPpo::new(
+            name,
+            input,
+            coordination,
+            config,
+            obs_dim,
+            ACTION_DIM,
+            device,
+        )
     };
+    let fixed = || Box::new(FixedLcf::new(&config.lcf));
     match config.learner.algo {
-        AlgoKind::Ippo => Box::new(ippo()),
-        AlgoKind::Cl => Box::new(cl::Cl::new(ippo(), cl::Curriculum::new(&config.curriculum))),
-        AlgoKind::CcppoMf => Box::new(
-            ccppo_mf::CcppoMf::new(ppo, obs_dim, ACTION_DIM, device, seed)
-                .with_coordination(lcf)
-                .with_safety(safety),
-        ),
-        AlgoKind::CcppoConcat => Box::new(
-            ccppo_concat::CcppoConcat::new(
-                ppo,
-                config.ccppo.neighbours,
-                obs_dim,
-                ACTION_DIM,
+        AlgoKind::Ippo => Box::new(ppo("ippo", OwnObservation, fixed())),
+        AlgoKind::Cl => Box::new(cl::Cl::new(
+            ppo("ippo", OwnObservation, fixed()),
+            cl::Curriculum::new(&config.curriculum),
+        )),
+        AlgoKind::CcppoMf => Box::new(SharedPpo::new(
+            "ccppo-mf",
+            MeanField,
+            fixed(),
+            config,
+            obs_dim,
+            ACTION_DIM,
+            device,
+        )),
+        AlgoKind::CcppoConcat => Box::new(SharedPpo::new(
+            "ccppo-concat",
+            Concat {
+                neighbours: config.ccppo.neighbours,
+            },
+            fixed(),
+            config,
+            obs_dim,
+            ACTION_DIM,
+            device,
+        )),
+        AlgoKind::Copo => Box::new(ppo(
+            "copo",
+            OwnObservation,
+            Box::new(copo::CopoLcf::new(&config.copo, device)),
+        )),
+        AlgoKind::DynamicLcf => Box::new(ppo(
+            "dynamic-lcf",
+            OwnObservation,
+            Box::new(dynamic_lcf::DynamicLcf::new(
+                &config.dynamic_lcf,
+                &config.lcf,
                 device,
-                seed,
-            )
-            .with_coordination(lcf)
-            .with_safety(safety),
-        ),
+            )),
+        )),
     }
 }

@@ -21,7 +21,7 @@ pub fn clipped_surrogate(
     let ratio = log_ratio.exp();
     let unclipped = &ratio * advantages;
     let clipped = ratio.clamp(1.0 - clip, 1.0 + clip) * advantages;
-    let loss = -unclipped.minimum(&clipped).mean(Kind::Float);
+    let loss = -unclipped.minimum(&clipped).mean(unclipped.kind());
     let (approx_kl, clip_fraction) = tch::no_grad(|| {
         let kl = ((&ratio - 1.0) - &log_ratio).mean(Kind::Float);
         let clipped_share = (&ratio - 1.0)

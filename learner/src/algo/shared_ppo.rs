@@ -1,18 +1,21 @@
-//! PPO with parameter sharing, written once for IPPO and the centralised-critic baselines: one
-//! decentralised Gaussian policy on each agent's own observation, one critic on what the
-//! algorithm's [`CriticInput`] builds, one Adam over both.
+//! PPO with parameter sharing, written once for IPPO, the centralised-critic baselines and the
+//! LCF methods: one decentralised Gaussian policy on each agent's own observation, value heads
+//! on what the algorithm's [`CriticInput`] builds, one Adam over policy and heads. What the
+//! heads learn and how their advantages make the policy's is the algorithm's [`Coordination`].
 //!
 //! ```text
 //! for each update:
 //!     fold the batch's observations into the running normaliser
-//!     x ← critic_input(normalised obs, neighbourhoods); V ← critic(x)
-//!     r ← α·cos φ·r_i + β·sin φ·r_N (fixed LCF, `[lcf]`; φ = 0: own reward)
-//!     A, R ← GAE(r, V, γ, λ) per agent
+//!     x ← critic_input(normalised obs, neighbourhoods)
+//!     for each value head h (coordination's signals, + the cost with `[safety]`):
+//!         V_h ← critic_h(x); A_h, R_h ← GAE(r_h, V_h, γ_h, λ) per agent
+//!     A ← coordination(A_h…)   (fixed LCF: GAE of α·cos φ·r_i + β·sin φ·r_N; φ = 0: IPPO)
 //!     repeat `epochs` times, over shuffled minibatches:
 //!         ρ = π(a|s) / π_behaviour(a|s)
-//!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·L_V(V(x), R) − c_e·H[π]
-//!         (with `[safety]`: Â mixes in the cost advantage and L the cost critic, safety.rs)
+//!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·Σ_h L_V(V_h(x), R_h) − c_e·H[π]
+//!         (with `[safety]`: Â mixes in the cost advantage, safety.rs)
 //!         Adam step on ∇L, gradient norm clipped
+//!     coordination learns (copo, dynamic-lcf: the meta-gradient on the LCF, meta_lcf.rs)
 //! ```
 
 use std::borrow::Cow;
@@ -22,15 +25,16 @@ use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{LcfConfig, PpoConfig, SafetyConfig, SafetyMode};
+use junction_common::config::{PpoConfig, RunConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf;
 use junction_common::policy::{GaussianPolicy, Mlp, gaussian_entropy, gaussian_log_prob};
 use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::batch::{
-    CriticInput, alive_observations, assemble, epoch_minibatches, explained_variance, standardize,
+    CriticInput, Head, alive_observations, assemble, epoch_minibatches, explained_variance,
+    standardize,
 };
+use super::coordination::{Coordination, MetaStep};
 use super::ppo::{clipped_surrogate, value_loss};
 use super::safety::Lagrangian;
 use super::{AlgoError, Algorithm, UpdateStats};
@@ -43,30 +47,32 @@ pub struct SharedPpo<C> {
     /// `learner.algo` value; also prefixes the checkpointed update count.
     name: &'static str,
     critic_input: C,
+    coordination: Box<dyn Coordination>,
     config: PpoConfig,
-    /// The fixed LCF the rewards are coordinated with (φ = 0: the agents' own rewards).
-    coordination: LcfConfig,
     /// PPO-Lagrangian's cost critic and multiplier, when `[safety] mode = "lagrangian"`.
     safety: Option<Lagrangian>,
-    critic_width: i64,
     policy: GaussianPolicy,
     critic_store: nn::VarStore,
-    critic: Mlp,
+    /// One per coordination signal, in its order.
+    critics: Vec<Mlp>,
     adam: Adam,
     seed: u64,
     updates: u64,
 }
 
 impl<C: CriticInput> SharedPpo<C> {
-    pub fn with_critic_input(
+    /// The algorithm `name` for observations of `obs_dim` values (what the policy takes) and
+    /// actions of `action_dim`, from the run's `[ppo]`, `[safety]` and seed.
+    pub fn new(
         name: &'static str,
         critic_input: C,
-        config: &PpoConfig,
+        coordination: Box<dyn Coordination>,
+        run: &RunConfig,
         obs_dim: usize,
         action_dim: usize,
         device: Device,
-        seed: u64,
     ) -> Self {
+        let config = &run.ppo;
         let policy = GaussianPolicy::new(
             device,
             obs_dim as i64,
@@ -75,67 +81,53 @@ impl<C: CriticInput> SharedPpo<C> {
             config.init_log_std,
         );
         let critic_store = nn::VarStore::new(device);
-        let critic_width = critic_input.width(obs_dim, action_dim) as i64;
-        let critic = Mlp::new(
-            critic_store.root() / "critic",
-            critic_width,
-            &config.hidden,
-            1,
-            1.0,
-        );
+        let width = critic_input.width(obs_dim, action_dim) as i64;
+        let critics = coordination
+            .signals()
+            .iter()
+            .map(|signal| {
+                Mlp::new(
+                    critic_store.root() / signal.critic,
+                    width,
+                    &config.hidden,
+                    1,
+                    1.0,
+                )
+            })
+            .collect();
+        let safety = (run.safety.mode == SafetyMode::Lagrangian).then(|| {
+            Lagrangian::new(
+                &run.safety,
+                critic_store.root() / "cost_critic",
+                width,
+                &config.hidden,
+            )
+        });
         let mut params = policy.trainable();
         params.extend(critic_store.trainable_variables());
         let adam = Adam::new(params, config.learning_rate, config.adam_eps);
         SharedPpo {
             name,
             critic_input,
+            coordination,
             config: config.clone(),
-            coordination: LcfConfig {
-                phi_deg: 0.0,
-                alpha: 1.0,
-                beta: 1.0,
-            },
-            safety: None,
-            critic_width,
+            safety,
             policy,
             critic_store,
-            critic,
+            critics,
             adam,
-            seed,
+            seed: run.run.seed,
             updates: 0,
         }
-    }
-
-    /// Trains on coordinated rewards r_C = α·cos φ·r_i + β·sin φ·r_N (`[lcf]`).
-    pub fn with_coordination(mut self, lcf: &LcfConfig) -> Self {
-        self.coordination = lcf.clone();
-        self
-    }
-
-    /// Adds PPO-Lagrangian's cost critic and multiplier (`[safety]`); before any update.
-    pub fn with_safety(mut self, config: &SafetyConfig) -> Self {
-        if config.mode == SafetyMode::Lagrangian {
-            self.safety = Some(Lagrangian::new(
-                config,
-                self.critic_store.root() / "cost_critic",
-                self.critic_width,
-                &self.config.hidden,
-            ));
-            // The optimiser now also steps the cost critic.
-            let mut params = self.policy.trainable();
-            params.extend(self.critic_store.trainable_variables());
-            self.adam = Adam::new(params, self.config.learning_rate, self.config.adam_eps);
-        }
-        self
-    }
-
-    fn value(&self, critic_inputs: &Tensor) -> Tensor {
-        self.critic.forward(critic_inputs).squeeze_dim(-1)
     }
 
     fn updates_key(&self) -> String {
         format!("{}.updates", self.name)
     }
+}
+
+fn value(critic: &Mlp, critic_inputs: &Tensor) -> Tensor {
+    critic.forward(critic_inputs).squeeze_dim(-1)
 }
 
 impl<C: CriticInput> Algorithm for SharedPpo<C> {
@@ -145,6 +137,11 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
 
     fn policy(&self) -> &GaussianPolicy {
         &self.policy
+    }
+
+    fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        self.policy
+            .to_bytes_with_metadata(version, self.coordination.policy_metadata())
     }
 
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
@@ -157,49 +154,66 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             self.policy.set_obs_stats(&stats);
         }
         let device = self.policy.device();
-        let lcf = &self.coordination;
-        let phi = lcf.phi_deg.to_radians();
+        let mut heads = Vec::new();
+        for (index, (signal, critic)) in self
+            .coordination
+            .signals()
+            .iter()
+            .zip(&self.critics)
+            .enumerate()
+        {
+            heads.push(Head {
+                rewards: fragments
+                    .iter()
+                    .map(|f| self.coordination.rewards(index, f))
+                    .collect::<Result<_, _>>()?,
+                value: Box::new(move |x| value(critic, x)),
+                gamma: signal.gamma.unwrap_or(c.gamma),
+            });
+        }
+        // The cost side of PPO-Lagrangian: the same rows, the costs, the cost critic.
+        if let Some(safety) = &self.safety {
+            heads.push(Head {
+                rewards: fragments
+                    .iter()
+                    .map(|f| Cow::Borrowed(f.costs.as_slice()))
+                    .collect(),
+                value: Box::new(|x| safety.cost_value(x)),
+                gamma: c.gamma,
+            });
+        }
         let batch = assemble(
             fragments,
             &self.critic_input,
-            |f| lcf::coordinated_rewards(f, phi, lcf.alpha, lcf.beta),
+            &heads,
             |obs| self.policy.normalize(obs),
-            |x| self.value(x),
-            c.gamma,
             c.gae_lambda,
             device,
         )?;
+        drop(heads);
         if batch.len == 0 {
             return Err(AlgoError::EmptyBatch);
         }
-        // The cost side of PPO-Lagrangian: the same cells, the costs, the cost critic.
-        let cost_batch = match &self.safety {
-            Some(safety) => Some(assemble(
-                fragments,
-                &self.critic_input,
-                |f| Cow::Borrowed(f.costs.as_slice()),
-                |obs| self.policy.normalize(obs),
-                |x| safety.cost_value(x),
-                c.gamma,
-                c.gae_lambda,
-                device,
-            )?),
-            None => None,
+        let policy_advantages = self.coordination.policy_advantages(&batch)?;
+        let before = if self.coordination.learns() {
+            Some(GaussianPolicy::from_bytes(&self.policy.to_bytes(0)?, device)?.0)
+        } else {
+            None
         };
         let mut rng =
             ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let main = &batch.heads[0];
         let mut stats = UpdateStats {
             agent_steps: batch.len,
-            explained_variance: explained_variance(&batch.old_values, &batch.returns),
+            explained_variance: explained_variance(&main.old_values, &main.returns),
             learning_rate: self.adam.learning_rate(),
-            lcf_mean_deg: f64::from(lcf.phi_deg),
             ..UpdateStats::default()
         };
         let mut minibatches = 0usize;
         for _ in 0..c.epochs {
             for idx in epoch_minibatches(batch.len, c.minibatch_size, &mut rng, device) {
                 let obs = self.policy.normalize(&batch.obs.index_select(0, &idx));
-                let advantages = batch.advantages.index_select(0, &idx);
+                let critic_inputs = batch.critic_inputs.index_select(0, &idx);
                 let scale = |a: Tensor| {
                     if c.normalize_advantages {
                         standardize(&a)
@@ -207,17 +221,30 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                         a
                     }
                 };
-                let mut advantages = scale(advantages);
-                let mut cost_v_loss = Tensor::zeros([], (Kind::Float, device));
-                if let (Some(safety), Some(costs)) = (&self.safety, &cost_batch) {
-                    let cost_advantages = scale(costs.advantages.index_select(0, &idx));
-                    advantages = safety.mixed_advantage(&advantages, &cost_advantages);
-                    cost_v_loss = value_loss(
-                        &safety.cost_value(&costs.critic_inputs.index_select(0, &idx)),
-                        &costs.old_values.index_select(0, &idx),
-                        &costs.returns.index_select(0, &idx),
+                let mut advantages = scale(policy_advantages.index_select(0, &idx));
+                let head_loss = |v: Tensor, head: usize| {
+                    let h = &batch.heads[head];
+                    value_loss(
+                        &v,
+                        &h.old_values.index_select(0, &idx),
+                        &h.returns.index_select(0, &idx),
                         c.value_clip,
-                    );
+                    )
+                };
+                let v_losses: Vec<Tensor> = self
+                    .critics
+                    .iter()
+                    .enumerate()
+                    .map(|(head, critic)| head_loss(value(critic, &critic_inputs), head))
+                    .collect();
+                let mut extra_v_loss = v_losses[1..]
+                    .iter()
+                    .fold(Tensor::zeros([], (Kind::Float, device)), |a, b| a + b);
+                if let Some(safety) = &self.safety {
+                    let cost = batch.heads.len() - 1;
+                    let cost_advantages = scale(batch.heads[cost].advantages.index_select(0, &idx));
+                    advantages = safety.mixed_advantage(&advantages, &cost_advantages);
+                    extra_v_loss += head_loss(safety.cost_value(&critic_inputs), cost);
                 }
                 let (mean, log_std) = self.policy.distribution(&obs);
                 let log_probs =
@@ -228,14 +255,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                     &advantages,
                     c.clip,
                 );
-                let v_loss = value_loss(
-                    &self.value(&batch.critic_inputs.index_select(0, &idx)),
-                    &batch.old_values.index_select(0, &idx),
-                    &batch.returns.index_select(0, &idx),
-                    c.value_clip,
-                );
+                let v_loss = &v_losses[0];
                 let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
-                let loss = &surrogate.loss + (&v_loss + &cost_v_loss) * c.value_coef
+                let loss = &surrogate.loss + (v_loss + &extra_v_loss) * c.value_coef
                     - &entropy * c.entropy_coef;
                 let loss_value = f64::try_from(&loss)?;
                 if !loss_value.is_finite() {
@@ -247,7 +269,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                 stats.grad_norm += self.adam.clip_grad_norm(c.max_grad_norm);
                 self.adam.step();
                 stats.policy_loss += f64::try_from(&surrogate.loss)?;
-                stats.value_loss += f64::try_from(&v_loss)?;
+                stats.value_loss += f64::try_from(v_loss)?;
                 stats.entropy += f64::try_from(&entropy)?;
                 stats.approx_kl += f64::try_from(&surrogate.approx_kl)?;
                 stats.clip_fraction += f64::try_from(&surrogate.clip_fraction)?;
@@ -266,6 +288,20 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         ] {
             *field /= n;
         }
+        if let Some(before) = &before {
+            self.coordination.learn(MetaStep {
+                fragments,
+                batch: &batch,
+                before,
+                after: &self.policy,
+                ppo: &c,
+                rng: &mut rng,
+            })?;
+        }
+        let lcf = self.coordination.report(fragments, &batch)?;
+        stats.lcf_mean_deg = lcf.mean_deg;
+        stats.lcf_std_deg = lcf.std_deg;
+        stats.lcf_phi_by_neighbours = lcf.by_neighbours;
         if let Some(safety) = &mut self.safety {
             safety.update_multiplier(fragments);
             stats.lagrange_multiplier = safety.multiplier();
@@ -284,6 +320,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         if let Some(safety) = &self.safety {
             state.push((SAFETY_MULTIPLIER.into(), safety.multiplier_tensor()));
         }
+        state.extend(self.coordination.state_tensors());
         state
     }
 
@@ -297,7 +334,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             let multiplier = state.take(SAFETY_MULTIPLIER, &[1])?.sum(Kind::Float);
             safety.set_multiplier(f64::try_from(multiplier)?);
         }
-        Ok(())
+        self.coordination.restore(state)
     }
 }
 
@@ -306,13 +343,38 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
 #[cfg(test)]
 pub(crate) mod testing {
     use super::*;
-    use crate::algo::batch::NormalizedFragment;
+    use crate::algo::batch::{NormalizedFragment, TrainBatch};
+    use crate::algo::coordination::FixedLcf;
+    use crate::algo::ippo::{Ippo, OwnObservation};
+    use junction_common::lcf;
+
+    /// The defaults with a small network (hidden [8]) and seed 7.
+    pub fn small_run() -> RunConfig {
+        let mut run = RunConfig::default();
+        run.ppo.hidden = vec![8];
+        run.run.seed = 7;
+        run
+    }
+
+    /// IPPO with the run's fixed LCF and safety option, on the CPU.
+    pub fn ippo(run: &RunConfig, obs_dim: usize, action_dim: usize) -> Ippo {
+        SharedPpo::new(
+            "ippo",
+            OwnObservation,
+            Box::new(FixedLcf::new(&run.lcf)),
+            run,
+            obs_dim,
+            action_dim,
+            Device::Cpu,
+        )
+    }
 
     /// 2 steps × 6 slots, obs_dim = action_dim = 2, all alive except slot 5 at t = 1 (done at
     /// t = 0). obs(t, s) = [s + 1, 10t + 1]; action(t, s) = [0.1(s + 1), 0.5 − t];
     /// bootstrap_obs(s) = [100 + s, 7]. Neighbours, nearest first:
     /// t = 0: 0 → [5, 4, 3, 2, 1]; 2 → [0]; 3 → [4, 2]; the rest none.
     /// t = 1: 0 → [5, 1] (5 is empty then); 3 → [4]; the rest none.
+    /// S_N(t, s) = [listed neighbours / 20, 0.5, 0.3, 0.1 (s + 1), 0.5].
     pub fn neighbourhood_fragment() -> RolloutFragment {
         let (steps, agents) = (2, 6);
         let cells = steps * agents;
@@ -344,10 +406,14 @@ pub(crate) mod testing {
         ];
         let mut neighbour_offsets = vec![0u32];
         let mut neighbour_ids = Vec::new();
-        for list in lists {
+        let mut lcf_features = Vec::new();
+        for (cell, list) in lists.iter().enumerate() {
             neighbour_ids.extend_from_slice(list);
             neighbour_offsets.push(neighbour_ids.len() as u32);
+            let slot = (cell % agents) as f32;
+            lcf_features.extend([list.len() as f32 / 20.0, 0.5, 0.3, 0.1 * (slot + 1.0), 0.5]);
         }
+        debug_assert_eq!(lcf_features.len(), cells * lcf::FEATURES);
         RolloutFragment {
             steps,
             agents,
@@ -363,8 +429,42 @@ pub(crate) mod testing {
             bootstrap_obs: (0..agents).flat_map(|s| [100.0 + s as f32, 7.0]).collect(),
             neighbour_offsets,
             neighbour_ids,
+            lcf_features,
             ..RolloutFragment::default()
         }
+    }
+
+    /// The batch of `fragment` with every critic predicting `value` (so GAE can be worked by
+    /// hand): `coordination`'s heads, `gamma` where a head does not set its own.
+    pub fn constant_critic_batch(
+        coordination: &dyn Coordination,
+        fragment: &RolloutFragment,
+        value: f32,
+        gamma: f32,
+        lambda: f32,
+    ) -> TrainBatch {
+        let heads: Vec<Head> = coordination
+            .signals()
+            .iter()
+            .enumerate()
+            .map(|(index, signal)| Head {
+                rewards: vec![coordination.rewards(index, fragment).unwrap()],
+                value: Box::new(move |x: &Tensor| {
+                    Tensor::full([x.size()[0]], f64::from(value), (Kind::Float, x.device()))
+                }),
+                gamma: signal.gamma.unwrap_or(gamma),
+            })
+            .collect();
+        let fragments = std::slice::from_ref(fragment);
+        assemble(
+            fragments,
+            &OwnObservation,
+            &heads,
+            Tensor::shallow_clone,
+            lambda,
+            Device::Cpu,
+        )
+        .unwrap()
     }
 
     /// `raw` as if the normaliser were the identity, so expected rows can be hand-computed.
@@ -406,8 +506,17 @@ pub(crate) mod testing {
     /// A learner restored from another's checkpoint holds the same state and, given the same
     /// fragment, makes the same next update (policy, critic and Adam moments alike).
     pub fn assert_checkpoint_round_trip<A: Algorithm>(make: impl Fn() -> A) {
+        assert_checkpoint_round_trip_on(make, &neighbourhood_fragment());
+    }
+
+    /// [`assert_checkpoint_round_trip`] on `fragment`; the restored learner gets the policy
+    /// blob actors would (with its metadata).
+    pub fn assert_checkpoint_round_trip_on<A: Algorithm>(
+        make: impl Fn() -> A,
+        fragment: &RolloutFragment,
+    ) {
         tch::manual_seed(3);
-        let fragment = neighbourhood_fragment();
+        let fragment = fragment.clone();
         let mut a = make();
         a.update(std::slice::from_ref(&fragment)).unwrap();
         let state = a.state_tensors();
@@ -415,7 +524,7 @@ pub(crate) mod testing {
         let bytes = weights::encode(&refs, Default::default()).unwrap();
         let mut b = make();
         b.restore(
-            &a.policy().to_bytes(1).unwrap(),
+            &a.policy_bytes(1).unwrap(),
             &mut Decoded::decode(&bytes).unwrap(),
         )
         .unwrap();
@@ -423,8 +532,8 @@ pub(crate) mod testing {
         a.update(std::slice::from_ref(&fragment)).unwrap();
         b.update(std::slice::from_ref(&fragment)).unwrap();
         assert_eq!(
-            a.policy().to_bytes(2).unwrap(),
-            b.policy().to_bytes(2).unwrap(),
+            a.policy_bytes(2).unwrap(),
+            b.policy_bytes(2).unwrap(),
             "policy after the next update"
         );
         assert_eq!(
@@ -437,24 +546,27 @@ pub(crate) mod testing {
 
 #[cfg(test)]
 mod tests {
-    use super::testing::{self, host_state, neighbourhood_fragment};
+    use super::testing::{self, host_state, ippo, neighbourhood_fragment, small_run};
     use super::*;
     use crate::algo::ippo::Ippo;
-    use junction_common::config::RunConfig;
+    use junction_common::config::LcfConfig;
 
     fn learner(lcf: &LcfConfig) -> Ippo {
         tch::manual_seed(5);
-        let mut config = RunConfig::default().ppo;
-        config.hidden = vec![8];
-        Ippo::new(&config, 2, 2, Device::Cpu, 3).with_coordination(lcf)
+        let mut run = small_run();
+        run.run.seed = 3;
+        run.lcf = lcf.clone();
+        ippo(&run, 2, 2)
     }
 
     fn lagrangian_ippo() -> Ippo {
-        let mut safety = RunConfig::default().safety;
-        safety.mode = SafetyMode::Lagrangian;
-        safety.cost_limit = 0.5;
-        safety.multiplier_lr = 0.1;
-        learner(&RunConfig::default().lcf).with_safety(&safety)
+        tch::manual_seed(5);
+        let mut run = small_run();
+        run.run.seed = 3;
+        run.safety.mode = SafetyMode::Lagrangian;
+        run.safety.cost_limit = 0.5;
+        run.safety.multiplier_lr = 0.1;
+        ippo(&run, 2, 2)
     }
 
     #[test]
@@ -511,14 +623,19 @@ mod tests {
             (plain_stats.lcf_mean_deg, cooperative_stats.lcf_mean_deg),
             (0.0, 90.0)
         );
+        // The fragment's agents have 0, 1–2 and 3–5 live neighbours, none 6 or more.
+        assert_eq!(
+            cooperative_stats.lcf_phi_by_neighbours,
+            [Some(90.0), Some(90.0), Some(90.0), None]
+        );
 
         // φ = 0 is exactly IPPO without coordination configured.
         tch::manual_seed(5);
-        let mut config = RunConfig::default().ppo;
-        config.hidden = vec![8];
-        let mut ippo = Ippo::new(&config, 2, 2, Device::Cpu, 3);
-        ippo.update(std::slice::from_ref(&fragment)).unwrap();
-        assert_eq!(host_state(&plain), host_state(&ippo));
+        let mut run = small_run();
+        run.run.seed = 3;
+        let mut reference = ippo(&run, 2, 2);
+        reference.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!(host_state(&plain), host_state(&reference));
         // φ = 90° learns from the neighbours' rewards: another value function.
         assert_ne!(host_state(&plain), host_state(&cooperative));
     }

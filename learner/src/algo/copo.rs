@@ -1,0 +1,359 @@
+//! CoPO, coordinated policy optimisation (Peng et al. 2021): every agent carries its own LCF
+//! angle φ, drawn from a learned distribution, and ascends a coordinated advantage; the
+//! distribution follows the meta-gradient of the global objective (meta_lcf.rs).
+//!
+//! ```text
+//! actors: each agent draws φ ~ N(μ, σ), clipped to ±90°, when it spawns, keeps it for its
+//!         episode and observes it as one more value, (φ/90° + 1)/2
+//! for each update (the loop is shared_ppo.rs's; the critics see the agent's observation):
+//!     r_i: own reward; r_N: mean reward of its live neighbours (0 alone);
+//!     r_G: mean reward of every agent in the scene at that step
+//!     A_i, A_N ← GAE(r_i, V_i), GAE(r_N, V_N) at γ;  A_G ← GAE(r_G, V_G) at γ = 1
+//!     A_C = cos φ·A_i + sin φ·A_N                        (φ read from the agent's observation)
+//!     PPO epochs on standardised A_C; value losses of V_i, V_N and V_G
+//!     meta-gradient on ψ = (atanh(μ/90°), ln(σ/90°)), each agent's draw reparameterised:
+//!         φ_k(ψ) = clip(μ(ψ) + σ(ψ)·ε_k, ±90°),  ε_k = (φ_k − μ)/σ
+//!         `meta_iterations` passes: Adam ascent on mean_k[c_k·A_C,k(ψ)] / std(A_C)
+//!     the next broadcast carries (μ, σ)
+//! ```
+//!
+//! Defaults (`[copo]`) are CoPO's: μ from 0°, σ from 0.1 of its 90° unit (9°), Adam at 1e-4,
+//! 5 passes. CoPO redraws fresh φ for the meta-gradient; reparameterising the agents' own draws
+//! differentiates the same expectation at the samples the update used.
+
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+
+use tch::{Device, Kind, Tensor};
+
+use junction_common::config::CopoConfig;
+use junction_common::fragment::RolloutFragment;
+use junction_common::lcf::{self, LcfDistribution, MAX_PHI_DEG};
+use junction_common::weights::{Decoded, WeightsError};
+
+use super::AlgoError;
+use super::batch::TrainBatch;
+use super::coordination::{Coordination, LcfReport, MetaStep, Signal};
+use super::meta_lcf;
+use crate::optim::Adam;
+
+/// Value heads, in [`CopoLcf::signals`] order.
+const INDIVIDUAL: usize = 0;
+const NEIGHBOURHOOD: usize = 1;
+const GLOBAL: usize = 2;
+const PARAMS_KEY: &str = "copo.lcf_params";
+const ADAM_KEY: &str = "copo.lcf_adam";
+/// ε of the meta-gradient's Adam (PyTorch's default, which CoPO uses).
+pub const META_ADAM_EPS: f64 = 1e-8;
+
+/// (μ, σ) in degrees of ψ = (atanh(μ/90°), ln(σ/90°)), differentiably.
+pub fn mean_and_std(params: &Tensor) -> (Tensor, Tensor) {
+    let mean = params.get(0).tanh() * f64::from(MAX_PHI_DEG);
+    // CoPO's bounds on log σ keep σ positive and finite.
+    let std = params.get(1).clamp(-20.0, 2.0).exp() * f64::from(MAX_PHI_DEG);
+    (mean, std)
+}
+
+/// φ = clip(μ(ψ) + σ(ψ)·ε, ±90°), degrees, for standard-normal draws ε.
+pub fn reparameterised_phi(params: &Tensor, noise: &Tensor) -> Tensor {
+    let (mean, std) = mean_and_std(params);
+    let limit = f64::from(MAX_PHI_DEG);
+    (mean + std * noise).clamp(-limit, limit)
+}
+
+/// A_C = cos φ·A_i + sin φ·A_N, φ in degrees: φ = 0 is A_i exactly, 90° A_N.
+pub fn coordinated_advantage(
+    phi_deg: &Tensor,
+    individual: &Tensor,
+    neighbourhood: &Tensor,
+) -> Tensor {
+    let phi = phi_deg * (std::f64::consts::PI / 180.0);
+    phi.cos() * individual + phi.sin() * neighbourhood
+}
+
+/// Each row's φ, degrees, from the last value of its raw observation.
+fn phi_of_rows(batch: &TrainBatch) -> Tensor {
+    let limit = f64::from(MAX_PHI_DEG);
+    ((batch.obs.select(1, -1) * 2.0 - 1.0) * limit).clamp(-limit, limit)
+}
+
+/// CoPO's coordination: three value heads, the coordinated advantage, the learned N(μ, σ).
+pub struct CopoLcf {
+    /// ψ = [atanh(μ/90°), ln(σ/90°)] (CoPO's parameterisation in its unit of 90°).
+    params: Tensor,
+    adam: Adam,
+    iterations: usize,
+}
+
+impl CopoLcf {
+    pub fn new(config: &CopoConfig, device: Device) -> Self {
+        let start = [
+            (config.initial_mean_deg / MAX_PHI_DEG).atanh(),
+            (config.initial_std_deg / MAX_PHI_DEG).ln(),
+        ];
+        let params = Tensor::from_slice(&start)
+            .to_device(device)
+            .set_requires_grad(true);
+        CopoLcf {
+            adam: Adam::new(vec![params.shallow_clone()], config.lcf_lr, META_ADAM_EPS),
+            params,
+            iterations: config.meta_iterations,
+        }
+    }
+
+    /// The distribution agents draw from now.
+    pub fn distribution(&self) -> Result<LcfDistribution, AlgoError> {
+        let (mean, std) = tch::no_grad(|| mean_and_std(&self.params));
+        Ok(LcfDistribution {
+            mean_deg: f64::try_from(mean)? as f32,
+            std_deg: f64::try_from(std)? as f32,
+        })
+    }
+}
+
+impl Coordination for CopoLcf {
+    fn signals(&self) -> Vec<Signal> {
+        vec![
+            Signal {
+                critic: "critic",
+                gamma: None,
+            },
+            Signal {
+                critic: "neighbourhood_critic",
+                gamma: None,
+            },
+            Signal {
+                critic: "global_critic",
+                gamma: Some(1.0),
+            },
+        ]
+    }
+
+    fn rewards<'f>(
+        &self,
+        index: usize,
+        fragment: &'f RolloutFragment,
+    ) -> Result<Cow<'f, [f32]>, AlgoError> {
+        Ok(match index {
+            INDIVIDUAL => Cow::Borrowed(fragment.rewards.as_slice()),
+            NEIGHBOURHOOD => Cow::Owned(lcf::neighbourhood_rewards(fragment)),
+            _ => Cow::Owned(lcf::global_rewards(fragment)),
+        })
+    }
+
+    fn policy_advantages(&self, batch: &TrainBatch) -> Result<Tensor, AlgoError> {
+        Ok(coordinated_advantage(
+            &phi_of_rows(batch),
+            &batch.heads[INDIVIDUAL].advantages,
+            &batch.heads[NEIGHBOURHOOD].advantages,
+        ))
+    }
+
+    fn learns(&self) -> bool {
+        true
+    }
+
+    fn learn(&mut self, step: MetaStep) -> Result<(), AlgoError> {
+        let batch = step.batch;
+        let c = meta_lcf::sensitivities(
+            step.before,
+            step.after,
+            batch,
+            &batch.heads[GLOBAL].advantages,
+            step.ppo.clip,
+            step.ppo.minibatch_size,
+        )?;
+        let phi = phi_of_rows(batch);
+        let individual = &batch.heads[INDIVIDUAL].advantages;
+        let neighbourhood = &batch.heads[NEIGHBOURHOOD].advantages;
+        let scale =
+            f64::try_from(coordinated_advantage(&phi, individual, neighbourhood).std(true))? + 1e-8;
+        let noise = tch::no_grad(|| {
+            let (mean, std) = mean_and_std(&self.params);
+            (&phi - mean) / std
+        });
+        let params = &self.params;
+        meta_lcf::ascend(
+            &mut self.adam,
+            self.iterations,
+            batch.len,
+            step.ppo.minibatch_size,
+            step.rng,
+            params.device(),
+            |idx| {
+                let advantage = coordinated_advantage(
+                    &reparameterised_phi(params, &noise.index_select(0, idx)),
+                    &individual.index_select(0, idx),
+                    &neighbourhood.index_select(0, idx),
+                );
+                (c.index_select(0, idx) * advantage).mean(Kind::Float) / scale
+            },
+        )?;
+        Ok(())
+    }
+
+    fn report(&self, _: &[RolloutFragment], batch: &TrainBatch) -> Result<LcfReport, AlgoError> {
+        let phi = Vec::<f32>::try_from(phi_of_rows(batch).to_device(Device::Cpu))?;
+        let distribution = self.distribution()?;
+        Ok(LcfReport {
+            mean_deg: f64::from(distribution.mean_deg),
+            std_deg: f64::from(distribution.std_deg),
+            ..LcfReport::from_rows(&phi, &batch.neighbour_counts)
+        })
+    }
+
+    fn policy_metadata(&self) -> BTreeMap<String, String> {
+        self.distribution()
+            .map(LcfDistribution::to_metadata)
+            .unwrap_or_default()
+    }
+
+    fn state_tensors(&self) -> Vec<(String, Tensor)> {
+        let mut state = vec![(PARAMS_KEY.to_string(), self.params.detach().copy())];
+        state.extend(self.adam.state(ADAM_KEY));
+        state
+    }
+
+    fn restore(&mut self, state: &mut Decoded) -> Result<(), WeightsError> {
+        let params = state.take(PARAMS_KEY, &[2])?;
+        self.adam.load_state(ADAM_KEY, state)?;
+        tch::no_grad(|| self.params.copy_(&params.to_device(self.params.device())));
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::Algorithm;
+    use crate::algo::ippo::OwnObservation;
+    use crate::algo::shared_ppo::SharedPpo;
+    use crate::algo::shared_ppo::testing::{
+        assert_checkpoint_round_trip_on, constant_critic_batch, neighbourhood_fragment, small_run,
+    };
+    use junction_common::config::RunConfig;
+
+    /// φ of each slot in [`copo_fragment`], degrees.
+    const PHI_BY_SLOT: [f32; 6] = [0.0, -45.0, 30.0, 90.0, 60.0, -90.0];
+
+    /// The neighbourhood fixture with each agent's φ as its last observation value.
+    fn copo_fragment() -> RolloutFragment {
+        let mut f = neighbourhood_fragment();
+        for cell in 0..f.steps * f.agents {
+            f.obs[cell * f.obs_dim + 1] = lcf::phi_observation(PHI_BY_SLOT[cell % f.agents]);
+        }
+        f
+    }
+
+    fn host(t: &Tensor) -> Vec<f32> {
+        Vec::<f32>::try_from(t.to_device(Device::Cpu)).unwrap()
+    }
+
+    fn coordination() -> CopoLcf {
+        CopoLcf::new(&RunConfig::default().copo, Device::Cpu)
+    }
+
+    #[test]
+    fn the_coordinated_advantage_by_hand() {
+        // Critics ≡ 0 and λ = 0 make each head's advantage its reward: A_i = r_i, A_N = r_N.
+        // Rewards (cell i: i mod 3 − ½) by slot: −½, ½, 3⁄2, −½, ½, 3⁄2 at both steps.
+        // r_N at t = 0: slot 0 (5 neighbours) 0.7, 2 → −½, 3 → 1; at t = 1: 0 → ½ (slot 5 is
+        // empty then and does not count), 3 → ½; the others have no neighbours.
+        let batch = constant_critic_batch(&coordination(), &copo_fragment(), 0.0, 0.99, 0.0);
+        let got = host(&coordination().policy_advantages(&batch).unwrap());
+        let (c30, s45) = (3.0f32.sqrt() / 2.0, std::f32::consts::FRAC_1_SQRT_2);
+        let expected = [
+            // t = 0, slots 0–5: φ = 0 → A_i; −45° without neighbours → cos·A_i; 30°; 90° → A_N;
+            // 60° alone; −90° alone → 0.
+            -0.5,
+            s45 * 0.5,
+            c30 * 1.5 + 0.5 * -0.5,
+            1.0,
+            0.5 * 0.5,
+            0.0,
+            // t = 1, slots 0–4.
+            -0.5,
+            s45 * 0.5,
+            c30 * 1.5,
+            0.5,
+            0.5 * 0.5,
+        ];
+        assert_eq!(got.len(), expected.len());
+        for (g, e) in got.iter().zip(expected) {
+            assert!((g - e).abs() < 1e-5, "{got:?} vs {expected:?}");
+        }
+        // φ = 0 is IPPO's advantage bit for bit.
+        let individual = host(&batch.heads[INDIVIDUAL].advantages);
+        assert_eq!((got[0], got[6]), (individual[0], individual[6]));
+    }
+
+    #[test]
+    fn the_global_head_runs_gae_on_the_scene_mean_reward_at_gamma_one() {
+        // r_G: t = 0 the mean of all six rewards, 3/6 = ½; t = 1 of the five alive, 1.5/5 = 0.3.
+        // V ≡ 1 everywhere (bootstraps too), λ = ½, γ = 1 (not the 0.99 given for the others):
+        // slots 0–4 at t = 1: δ = 0.3 + 1 − 1 = 0.3; at t = 0: δ = ½, A = ½ + ½·0.3 = 0.65;
+        // slot 5 ends at t = 0: δ = ½ − 1 = −½.
+        let batch = constant_critic_batch(&coordination(), &copo_fragment(), 1.0, 0.99, 0.5);
+        let global = &batch.heads[GLOBAL];
+        let expected = [0.65, 0.65, 0.65, 0.65, 0.65, -0.5, 0.3, 0.3, 0.3, 0.3, 0.3];
+        for (name, got, want) in [
+            ("advantages", host(&global.advantages), expected),
+            ("returns", host(&global.returns), expected.map(|a| a + 1.0)),
+        ] {
+            for (g, e) in got.iter().zip(want) {
+                assert!((g - e).abs() < 1e-6, "{name}: {got:?} vs {want:?}");
+            }
+        }
+    }
+
+    fn copo_learner() -> SharedPpo<OwnObservation> {
+        let run = small_run();
+        SharedPpo::new(
+            "copo",
+            OwnObservation,
+            Box::new(CopoLcf::new(&run.copo, Device::Cpu)),
+            &run,
+            2,
+            2,
+            Device::Cpu,
+        )
+    }
+
+    #[test]
+    fn an_update_moves_the_distribution_actors_receive_and_checkpoints_continue_exactly() {
+        tch::manual_seed(4);
+        let mut learner = copo_learner();
+        let start = LcfDistribution::from_metadata(
+            &junction_common::weights::metadata(&learner.policy_bytes(0).unwrap()).unwrap(),
+        )
+        .unwrap()
+        .unwrap();
+        assert!(start.mean_deg.abs() < 1e-6 && (start.std_deg - 9.0).abs() < 1e-4);
+        let fragment = copo_fragment();
+        let stats = learner.update(std::slice::from_ref(&fragment)).unwrap();
+        let after = LcfDistribution::from_metadata(
+            &junction_common::weights::metadata(&learner.policy_bytes(1).unwrap()).unwrap(),
+        )
+        .unwrap()
+        .unwrap();
+        assert_ne!(after, start, "the meta-gradient moved neither μ nor σ");
+        assert_eq!(
+            (stats.lcf_mean_deg as f32, stats.lcf_std_deg as f32),
+            (after.mean_deg, after.std_deg)
+        );
+        // Per neighbour bucket, the agents' own φ; without neighbours: slots 1, 4, 5 at t = 0
+        // and 1, 2, 4 at t = 1.
+        let lonely = [-45.0, 60.0, -90.0, -45.0, 30.0, 60.0];
+        let mean = lonely.iter().sum::<f64>() / 6.0;
+        let got = stats.lcf_phi_by_neighbours[0].unwrap();
+        assert!((got - mean).abs() < 1e-3, "{got} vs {mean}");
+        assert_checkpoint_round_trip_on(
+            || {
+                let mut learner = copo_learner();
+                learner.update(std::slice::from_ref(&fragment)).unwrap();
+                learner
+            },
+            &fragment,
+        );
+    }
+}

@@ -1,0 +1,394 @@
+//! The paper's dynamic LCF (§3.2): each agent's angle follows its neighbourhood at every step,
+//! φ_i,t = f_ψ(S_N(i,t)), and it trains on the coordinated reward; ψ follows CoPO's
+//! meta-gradient of the global objective (meta_lcf.rs), so it learns where cooperation pays.
+//!
+//! ```text
+//! φ_i,t = 90°·tanh(f_ψ(S_N(i,t)))   f_ψ: a small MLP over the neighbourhood features every
+//!                                    fragment ships (count, distances, relative speeds)
+//! for each update (the loop is shared_ppo.rs's; the critics see the agent's observation):
+//!     r_C = α·cos φ·r_i + β·sin φ·r_N     (r_N: mean reward of the live neighbours, 0 alone)
+//!     r_G = mean reward of every agent in the scene at that step
+//!     A_C ← GAE(r_C, V_C) at γ;  A_G ← GAE(r_G, V_G) at γ = 1
+//!     PPO epochs on standardised A_C; value losses of V_C and V_G
+//!     meta-gradient on ψ: A_C is linear in the rewards, so with w = GAEᵀ·c (gae.rs)
+//!         mean_k[c_k·A_C,k(ψ)] = mean_j[w_j·r_C,j(ψ)] + terms without ψ
+//!         `meta_iterations` passes: Adam ascent on mean_j[w_j·r_C,j(ψ)] / std(A_C)
+//! ```
+//!
+//! φ does not enter the observation: the learner computes it from the features, so actors run
+//! the plain policy. f_ψ starts with a near-zero output (φ ≈ 0°: IPPO, like CoPO's μ = 0°).
+//! α, β are `[lcf] alpha/beta`; the paper gives no values (1 and 1 by default).
+
+use std::borrow::Cow;
+
+use tch::nn::{self, Module};
+use tch::{Device, Kind, Tensor};
+
+use junction_common::config::{DynamicLcfConfig, LcfConfig};
+use junction_common::fragment::RolloutFragment;
+use junction_common::lcf::{self, FEATURES, MAX_PHI_DEG};
+use junction_common::policy::Mlp;
+use junction_common::weights::{self, Decoded, WeightsError};
+
+use super::AlgoError;
+use super::batch::TrainBatch;
+use super::coordination::{Coordination, LcfReport, MetaStep, Signal};
+use super::copo::META_ADAM_EPS;
+use super::gae::reward_adjoint;
+use super::meta_lcf;
+use crate::optim::Adam;
+
+/// Value heads, in [`DynamicLcf::signals`] order.
+const COORDINATED: usize = 0;
+const GLOBAL: usize = 1;
+const ADAM_KEY: &str = "dynamic_lcf.adam";
+
+/// φ in degrees for rows of neighbourhood features [m, FEATURES].
+fn phi_deg(net: &Mlp, features: &Tensor) -> Tensor {
+    net.forward(features).squeeze_dim(-1).tanh() * f64::from(MAX_PHI_DEG)
+}
+
+/// The features of every alive cell, in batch order, row-major.
+fn feature_rows(fragments: &[RolloutFragment]) -> Vec<f32> {
+    let mut rows = Vec::new();
+    for f in fragments {
+        for cell in (0..f.steps * f.agents).filter(|&c| f.alive[c]) {
+            rows.extend_from_slice(&f.lcf_features[cell * FEATURES..(cell + 1) * FEATURES]);
+        }
+    }
+    rows
+}
+
+pub struct DynamicLcf {
+    store: nn::VarStore,
+    /// f_ψ.
+    net: Mlp,
+    adam: Adam,
+    alpha: f32,
+    beta: f32,
+    iterations: usize,
+}
+
+impl DynamicLcf {
+    pub fn new(config: &DynamicLcfConfig, lcf: &LcfConfig, device: Device) -> Self {
+        let store = nn::VarStore::new(device);
+        let net = Mlp::new(
+            store.root() / "lcf_net",
+            FEATURES as i64,
+            &config.hidden,
+            1,
+            0.01,
+        );
+        let adam = Adam::new(store.trainable_variables(), config.lcf_lr, META_ADAM_EPS);
+        DynamicLcf {
+            store,
+            net,
+            adam,
+            alpha: lcf.alpha,
+            beta: lcf.beta,
+            iterations: config.meta_iterations,
+        }
+    }
+
+    fn device(&self) -> Device {
+        self.store.device()
+    }
+
+    /// φ in degrees of `rows` (row-major features), computed without gradients.
+    fn phi_of(&self, rows: &[f32]) -> Result<Vec<f32>, AlgoError> {
+        let features = Tensor::from_slice(rows)
+            .reshape([(rows.len() / FEATURES) as i64, FEATURES as i64])
+            .to_device(self.device());
+        let phi = tch::no_grad(|| phi_deg(&self.net, &features));
+        Ok(Vec::<f32>::try_from(phi.to_device(Device::Cpu))?)
+    }
+}
+
+impl Coordination for DynamicLcf {
+    fn signals(&self) -> Vec<Signal> {
+        vec![
+            Signal {
+                critic: "critic",
+                gamma: None,
+            },
+            Signal {
+                critic: "global_critic",
+                gamma: Some(1.0),
+            },
+        ]
+    }
+
+    fn rewards<'f>(
+        &self,
+        index: usize,
+        fragment: &'f RolloutFragment,
+    ) -> Result<Cow<'f, [f32]>, AlgoError> {
+        if index == GLOBAL {
+            return Ok(Cow::Owned(lcf::global_rewards(fragment)));
+        }
+        let phi: Vec<f32> = self
+            .phi_of(&fragment.lcf_features)?
+            .into_iter()
+            .map(f32::to_radians)
+            .collect();
+        Ok(Cow::Owned(lcf::coordinated_rewards_per_cell(
+            fragment, &phi, self.alpha, self.beta,
+        )))
+    }
+
+    fn policy_advantages(&self, batch: &TrainBatch) -> Result<Tensor, AlgoError> {
+        Ok(batch.heads[COORDINATED].advantages.shallow_clone())
+    }
+
+    fn learns(&self) -> bool {
+        true
+    }
+
+    fn learn(&mut self, step: MetaStep) -> Result<(), AlgoError> {
+        let batch = step.batch;
+        let c = meta_lcf::sensitivities(
+            step.before,
+            step.after,
+            batch,
+            &batch.heads[GLOBAL].advantages,
+            step.ppo.clip,
+            step.ppo.minibatch_size,
+        )?;
+        let c = Vec::<f32>::try_from(c.to_device(Device::Cpu))?;
+        // Each reward's weight w_j in mean_k[c_k·A_C,k], and the rows' r_i and r_N.
+        let (mut weights, mut own, mut neighbourhood) = (Vec::new(), Vec::new(), Vec::new());
+        let mut next = c.iter();
+        for f in step.fragments {
+            let cells = f.steps * f.agents;
+            let mut cotangents = vec![0.0; cells];
+            for cell in (0..cells).filter(|&c| f.alive[c]) {
+                cotangents[cell] = next.next().copied().unwrap_or(0.0);
+            }
+            let w = reward_adjoint(
+                (f.steps, f.agents),
+                &f.dones,
+                &f.alive,
+                &cotangents,
+                step.ppo.gamma,
+                step.ppo.gae_lambda,
+            );
+            let r_n = lcf::neighbourhood_rewards(f);
+            for cell in (0..cells).filter(|&c| f.alive[c]) {
+                weights.push(w[cell]);
+                own.push(f.rewards[cell]);
+                neighbourhood.push(r_n[cell]);
+            }
+        }
+        let device = self.device();
+        let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
+        let (weights, own, neighbourhood) = (to(&weights), to(&own), to(&neighbourhood));
+        let rows = feature_rows(step.fragments);
+        let features = to(&rows).reshape([batch.len as i64, FEATURES as i64]);
+        let scale = f64::try_from(batch.heads[COORDINATED].advantages.std(true))? + 1e-8;
+        let (net, alpha, beta) = (&self.net, f64::from(self.alpha), f64::from(self.beta));
+        meta_lcf::ascend(
+            &mut self.adam,
+            self.iterations,
+            batch.len,
+            step.ppo.minibatch_size,
+            step.rng,
+            device,
+            |idx| {
+                let phi =
+                    phi_deg(net, &features.index_select(0, idx)) * (std::f64::consts::PI / 180.0);
+                let reward = phi.cos() * own.index_select(0, idx) * alpha
+                    + phi.sin() * neighbourhood.index_select(0, idx) * beta;
+                (weights.index_select(0, idx) * reward).mean(Kind::Float) / scale
+            },
+        )?;
+        Ok(())
+    }
+
+    fn report(
+        &self,
+        fragments: &[RolloutFragment],
+        batch: &TrainBatch,
+    ) -> Result<LcfReport, AlgoError> {
+        let phi = self.phi_of(&feature_rows(fragments))?;
+        Ok(LcfReport::from_rows(&phi, &batch.neighbour_counts))
+    }
+
+    fn state_tensors(&self) -> Vec<(String, Tensor)> {
+        let mut state = weights::var_store_tensors(&self.store);
+        state.extend(self.adam.state(ADAM_KEY));
+        state
+    }
+
+    fn restore(&mut self, state: &mut Decoded) -> Result<(), WeightsError> {
+        weights::load_var_store(&self.store, state)?;
+        self.adam.load_state(ADAM_KEY, state)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::Algorithm;
+    use crate::algo::coordination::FixedLcf;
+    use crate::algo::ippo::OwnObservation;
+    use crate::algo::shared_ppo::SharedPpo;
+    use crate::algo::shared_ppo::testing::{
+        assert_checkpoint_round_trip, constant_critic_batch, host_state, neighbourhood_fragment,
+        small_run,
+    };
+    use junction_common::config::RunConfig;
+
+    /// f_ψ with every weight 0 and output bias `bias`: φ = 90°·tanh(bias) for every agent.
+    fn constant(bias: f64, lcf: &LcfConfig, lr: f64) -> DynamicLcf {
+        let mut config = RunConfig::default().dynamic_lcf;
+        config.lcf_lr = lr;
+        let dynamic = DynamicLcf::new(&config, lcf, Device::Cpu);
+        tch::no_grad(|| {
+            for (name, mut var) in dynamic.store.variables() {
+                let last_bias = name.ends_with(&format!("l{}.bias", config.hidden.len()));
+                let _ = var.fill_(if last_bias { bias } else { 0.0 });
+            }
+        });
+        dynamic
+    }
+
+    fn host(t: &Tensor) -> Vec<f32> {
+        Vec::<f32>::try_from(t.to_device(Device::Cpu)).unwrap()
+    }
+
+    #[test]
+    fn the_coordinated_reward_by_hand() {
+        // φ = 30° everywhere, α = 1, β = ½; critics ≡ 0 and λ = 0 make A_C = r_C. Rewards by
+        // slot: −½, ½, 3⁄2, −½, ½, 3⁄2 at both steps; r_N at t = 0: slot 0 → 0.7, 2 → −½,
+        // 3 → 1; at t = 1: 0 → ½ (empty slot 5 left out), 3 → ½; the rest have no neighbours
+        // and keep only cos φ·r_i.
+        let lcf = LcfConfig {
+            phi_deg: 0.0,
+            alpha: 1.0,
+            beta: 0.5,
+        };
+        let dynamic = constant((1.0f64 / 3.0).atanh(), &lcf, 1e-4);
+        let batch = constant_critic_batch(&dynamic, &neighbourhood_fragment(), 0.0, 0.99, 0.0);
+        let (c, s) = (3.0f32.sqrt() / 2.0, 0.5 * 0.5);
+        let expected = [
+            c * -0.5 + s * 0.7,
+            c * 0.5,
+            c * 1.5 + s * -0.5,
+            c * -0.5 + s * 1.0,
+            c * 0.5,
+            c * 1.5,
+            c * -0.5 + s * 0.5,
+            c * 0.5,
+            c * 1.5,
+            c * -0.5 + s * 0.5,
+            c * 0.5,
+        ];
+        let got = host(&dynamic.policy_advantages(&batch).unwrap());
+        for (g, e) in got.iter().zip(expected) {
+            assert!((g - e).abs() < 1e-5, "{got:?} vs {expected:?}");
+        }
+        let report = dynamic.report(&[neighbourhood_fragment()], &batch).unwrap();
+        assert!((report.mean_deg - 30.0).abs() < 1e-4 && report.std_deg < 1e-4);
+    }
+
+    /// PPO without gradient-norm clipping: the global head's gradient would change the norm.
+    fn unclipped_run() -> RunConfig {
+        let mut run = small_run();
+        run.ppo.max_grad_norm = 0.0;
+        run
+    }
+
+    #[test]
+    fn a_zero_lcf_trains_exactly_like_ippo() {
+        let run = unclipped_run();
+        let fragment = neighbourhood_fragment();
+        // f_ψ ≡ 0 (φ = 0) and a meta step size of 0, so φ stays 0.
+        let zero = constant(0.0, &run.lcf, 0.0);
+        tch::manual_seed(5);
+        let mut dynamic = SharedPpo::new(
+            "dynamic-lcf",
+            OwnObservation,
+            Box::new(zero),
+            &run,
+            2,
+            2,
+            Device::Cpu,
+        );
+        tch::manual_seed(5);
+        let mut ippo = SharedPpo::new(
+            "ippo",
+            OwnObservation,
+            Box::new(FixedLcf::new(&run.lcf)),
+            &run,
+            2,
+            2,
+            Device::Cpu,
+        );
+        for _ in 0..2 {
+            let stats = dynamic.update(std::slice::from_ref(&fragment)).unwrap();
+            assert_eq!((stats.lcf_mean_deg, stats.lcf_std_deg), (0.0, 0.0));
+            ippo.update(std::slice::from_ref(&fragment)).unwrap();
+        }
+        assert_eq!(
+            dynamic.policy_bytes(1).unwrap(),
+            ippo.policy_bytes(1).unwrap(),
+            "policy"
+        );
+        let critic = |state: Vec<(String, Vec<f32>)>| -> Vec<(String, Vec<f32>)> {
+            state
+                .into_iter()
+                .filter(|(name, _)| name.starts_with("critic."))
+                .collect()
+        };
+        let ippo_critic = critic(host_state(&ippo));
+        assert!(!ippo_critic.is_empty());
+        assert_eq!(critic(host_state(&dynamic)), ippo_critic, "critic");
+    }
+
+    fn dynamic_learner() -> SharedPpo<OwnObservation> {
+        let run = small_run();
+        SharedPpo::new(
+            "dynamic-lcf",
+            OwnObservation,
+            Box::new(DynamicLcf::new(&run.dynamic_lcf, &run.lcf, Device::Cpu)),
+            &run,
+            2,
+            2,
+            Device::Cpu,
+        )
+    }
+
+    #[test]
+    fn the_meta_gradient_moves_f_and_phi_is_reported_by_neighbour_count() {
+        tch::manual_seed(6);
+        let mut learner = dynamic_learner();
+        let fragment = neighbourhood_fragment();
+        let net = |l: &SharedPpo<OwnObservation>| -> Vec<(String, Vec<f32>)> {
+            host_state(l)
+                .into_iter()
+                .filter(|(name, _)| name.starts_with("lcf_net."))
+                .collect()
+        };
+        let before = net(&learner);
+        assert!(!before.is_empty());
+        let stats = learner.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_ne!(
+            net(&learner),
+            before,
+            "the meta-gradient left f_ψ unchanged"
+        );
+        // The fixture's agents have 0, 1–2 and 3–5 neighbours, none 6 or more.
+        let buckets = stats.lcf_phi_by_neighbours;
+        assert!(buckets[..3].iter().all(Option::is_some) && buckets[3].is_none());
+        assert!(
+            stats.lcf_std_deg > 0.0,
+            "φ should vary with the neighbourhood"
+        );
+        assert!(stats.lcf_mean_deg.abs() < 90.0);
+        assert_checkpoint_round_trip(|| {
+            let mut learner = dynamic_learner();
+            learner.update(std::slice::from_ref(&fragment)).unwrap();
+            learner
+        });
+    }
+}

@@ -1,0 +1,321 @@
+//! The meta-gradient of the learned LCFs (CoPO's global coordination, Peng et al. 2021),
+//! written once for CoPO's (μ, σ) and the dynamic LCF's f_ψ.
+//!
+//! ```text
+//! ψ: the LCF parameters; A_C(ψ): the coordinated advantage the PPO update ascended;
+//! θ, θ': the policy before and after that update; Â_G: the standardised global advantage.
+//! J_G(θ') = mean_k min(ρ_k·Â_G,k, clip(ρ_k, 1±ε)·Â_G,k),  ρ_k = π_θ'(a_k|s_k) / π_b(a_k|s_k)
+//! one policy-gradient step θ' = θ + η·∇θ mean_k[A_C,k(ψ)·log π_θ(a_k|s_k)], so (first order)
+//!     ∇ψ J_G = η·mean_k[c_k·∇ψ A_C,k(ψ)]   with
+//!     g   = ∇θ' J_G(θ')
+//!     c_k = ∇θ log π_θ(a_k|s_k) · g        (a Jacobian-vector product: double backward)
+//! repeat `meta_iterations` times, over shuffled minibatches:
+//!     Adam ascent step on ψ along ∇ψ mean_{k∈mb}[c_k·A_C,k(ψ)] / s
+//! ```
+//!
+//! η only scales the gradient, which Adam does not see, so it is left out; s, the batch's
+//! standard deviation of A_C (a constant), makes the step follow the standardised advantage
+//! the PPO loss used, as CoPO does. CoPO multiplies batch means (g·mean_k ∇θ log π_k times
+//! mean_k ∇ψ A_C,k); the per-sample form above is the chain rule itself.
+
+use rand_chacha::ChaCha8Rng;
+use tch::{Device, Tensor};
+
+use junction_common::policy::{GaussianPolicy, gaussian_log_prob};
+
+use super::AlgoError;
+use super::batch::{TrainBatch, epoch_minibatches, standardize};
+use super::ppo::clipped_surrogate;
+use crate::optim::Adam;
+
+/// ∇ of a scalar `objective` with respect to `params`, without touching their `.grad`.
+pub fn objective_gradient(
+    objective: &Tensor,
+    params: &[Tensor],
+) -> Result<Vec<Tensor>, tch::TchError> {
+    Tensor::f_run_backward(&[objective], params, false, false)
+}
+
+/// c_k = ∇θ log_probs[k] · direction for every k, exactly: differentiating the probe-weighted
+/// sum Σ u_k·log_probs[k] gives Σ u_k·∇θ log_probs[k] (kept differentiable), whose dot product
+/// with the direction is linear in u with gradient c.
+pub fn log_prob_jvp(
+    log_probs: &Tensor,
+    params: &[Tensor],
+    direction: &[Tensor],
+) -> Result<Tensor, tch::TchError> {
+    let probe = log_probs.zeros_like().detach().set_requires_grad(true);
+    let weighted = (&probe * log_probs).sum(log_probs.kind());
+    let grads = Tensor::f_run_backward(&[&weighted], params, true, true)?;
+    let dot = grads
+        .iter()
+        .zip(direction)
+        .filter(|(g, _)| g.defined())
+        .map(|(g, d)| (g * d).sum(log_probs.kind()))
+        .fold(log_probs.zeros_like().sum(log_probs.kind()), |a, b| a + b);
+    let mut c = Tensor::f_run_backward(&[&dot], &[&probe], false, false)?;
+    Ok(c.remove(0).detach())
+}
+
+/// c_k for every row of `batch`: the policy `before` the update, the policy `after` it, the
+/// batch's global advantages (standardised here over the whole batch). Rows are taken `chunk`
+/// at a time to bound the memory of the double backward.
+pub fn sensitivities(
+    before: &GaussianPolicy,
+    after: &GaussianPolicy,
+    batch: &TrainBatch,
+    global_advantages: &Tensor,
+    clip: f64,
+    chunk: usize,
+) -> Result<Tensor, AlgoError> {
+    let n = batch.len as i64;
+    let chunk = chunk.max(1) as i64;
+    let starts: Vec<i64> = (0..n).step_by(chunk as usize).collect();
+    let rows = |t: &Tensor, start: i64| t.narrow(0, start, chunk.min(n - start));
+    let global = standardize(global_advantages);
+
+    let params_after = after.trainable();
+    let mut g: Vec<Tensor> = params_after.iter().map(Tensor::zeros_like).collect();
+    for &start in &starts {
+        let obs = after.normalize(&rows(&batch.obs, start));
+        let (mean, log_std) = after.distribution(&obs);
+        let log_probs = gaussian_log_prob(&mean, &log_std, &rows(&batch.actions, start));
+        let share = chunk.min(n - start) as f64 / n as f64;
+        let objective = -clipped_surrogate(
+            &log_probs,
+            &rows(&batch.old_log_probs, start),
+            &rows(&global, start),
+            clip,
+        )
+        .loss
+            * share;
+        for (total, part) in g
+            .iter_mut()
+            .zip(objective_gradient(&objective, &params_after)?)
+        {
+            *total += part;
+        }
+    }
+
+    let params_before = before.trainable();
+    let mut c = Vec::with_capacity(starts.len());
+    for &start in &starts {
+        let obs = before.normalize(&rows(&batch.obs, start));
+        let (mean, log_std) = before.distribution(&obs);
+        let log_probs = gaussian_log_prob(&mean, &log_std, &rows(&batch.actions, start));
+        c.push(log_prob_jvp(&log_probs, &params_before, &g)?);
+    }
+    Ok(Tensor::cat(&c, 0))
+}
+
+/// Adam ascent on the parameters `adam` holds: `iterations` passes over shuffled minibatches
+/// of `rows` rows, each step along the gradient of `objective(minibatch indices)`, a scalar to
+/// maximise. Returns the mean objective over the steps taken (non-finite ones are skipped).
+pub fn ascend(
+    adam: &mut Adam,
+    iterations: usize,
+    rows: usize,
+    minibatch: usize,
+    rng: &mut ChaCha8Rng,
+    device: Device,
+    objective: impl Fn(&Tensor) -> Tensor,
+) -> Result<f64, AlgoError> {
+    let (mut total, mut steps) = (0.0, 0usize);
+    for _ in 0..iterations {
+        for idx in epoch_minibatches(rows, minibatch, rng, device) {
+            let value = objective(&idx);
+            let scalar = f64::try_from(&value)?;
+            if !scalar.is_finite() {
+                continue;
+            }
+            adam.zero_grad();
+            (-value).backward();
+            adam.step();
+            total += scalar;
+            steps += 1;
+        }
+    }
+    Ok(total / steps.max(1) as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::copo::{coordinated_advantage, reparameterised_phi};
+    use tch::Kind;
+
+    const F64: (Kind, Device) = (Kind::Double, Device::Cpu);
+
+    fn t(values: &[f64], shape: &[i64]) -> Tensor {
+        Tensor::from_slice(values).reshape(shape)
+    }
+
+    /// A tiny Gaussian policy in f64: mean = tanh(s·W1)·W2, log-std a free vector.
+    struct Tiny {
+        w1: Tensor,
+        w2: Tensor,
+        log_std: Tensor,
+    }
+
+    impl Tiny {
+        fn params(&self) -> Vec<Tensor> {
+            vec![
+                self.w1.shallow_clone(),
+                self.w2.shallow_clone(),
+                self.log_std.shallow_clone(),
+            ]
+        }
+
+        fn log_probs(&self, obs: &Tensor, actions: &Tensor) -> Tensor {
+            let mean = obs.matmul(&self.w1).tanh().matmul(&self.w2);
+            gaussian_log_prob(&mean, &self.log_std.expand_as(&mean), actions)
+        }
+
+        /// θ + η·step, as fresh leaves.
+        fn moved(&self, step: &[Tensor], eta: f64) -> Tiny {
+            let p = self.params();
+            let leaf = |i: usize| (&p[i] + &step[i] * eta).detach().set_requires_grad(true);
+            Tiny {
+                w1: leaf(0),
+                w2: leaf(1),
+                log_std: leaf(2),
+            }
+        }
+    }
+
+    /// J(ψ) = J_G(θ + η·∇θ L_in(θ, ψ)), L_in = mean_k[A_C,k(ψ)/s·log π_θ(a_k|s_k)]: one plain
+    /// SGD step of the policy on CoPO's coordinated advantage, then the global objective.
+    struct Problem {
+        theta: Tiny,
+        obs: Tensor,
+        actions: Tensor,
+        behaviour: Tensor,
+        individual: Tensor,
+        neighbourhood: Tensor,
+        global: Tensor,
+        noise: Tensor,
+        scale: f64,
+        eta: f64,
+        clip: f64,
+    }
+
+    impl Problem {
+        fn coordinated(&self, psi: &Tensor) -> Tensor {
+            coordinated_advantage(
+                &reparameterised_phi(psi, &self.noise),
+                &self.individual,
+                &self.neighbourhood,
+            ) / self.scale
+        }
+
+        fn updated_policy(&self, psi: &Tensor) -> Tiny {
+            let inner = (self.coordinated(psi).detach()
+                * self.theta.log_probs(&self.obs, &self.actions))
+            .mean(Kind::Double);
+            let step = objective_gradient(&inner, &self.theta.params()).unwrap();
+            self.theta.moved(&step, self.eta)
+        }
+
+        fn global_objective(&self, policy: &Tiny) -> Tensor {
+            -clipped_surrogate(
+                &policy.log_probs(&self.obs, &self.actions),
+                &self.behaviour,
+                &self.global,
+                self.clip,
+            )
+            .loss
+        }
+
+        fn objective(&self, psi: &[f64]) -> f64 {
+            let psi = t(psi, &[2]);
+            f64::try_from(self.global_objective(&self.updated_policy(&psi))).unwrap()
+        }
+    }
+
+    #[test]
+    fn the_meta_gradient_matches_central_differences_of_the_global_objective() {
+        tch::manual_seed(11);
+        let rows = 7;
+        let theta = Tiny {
+            w1: Tensor::randn([3, 4], F64).set_requires_grad(true),
+            w2: Tensor::randn([4, 2], F64).set_requires_grad(true),
+            log_std: t(&[-0.3, 0.2], &[2]).set_requires_grad(true),
+        };
+        let obs = Tensor::randn([rows, 3], F64);
+        let actions = Tensor::randn([rows, 2], F64);
+        // Behaviour log-probabilities near the policy's, so every ratio stays inside the clip
+        // range (J is smooth there).
+        let behaviour =
+            theta.log_probs(&obs, &actions).detach() + Tensor::randn([rows], F64) * 0.01;
+        let problem = Problem {
+            theta,
+            obs,
+            actions,
+            behaviour,
+            individual: Tensor::randn([rows], F64),
+            neighbourhood: Tensor::randn([rows], F64),
+            global: Tensor::randn([rows], F64),
+            noise: Tensor::randn([rows], F64),
+            scale: 1.7,
+            eta: 0.05,
+            clip: 0.3,
+        };
+        // ψ = (atanh(μ/90°), ln(σ/90°)): μ = 20°, σ = 15°.
+        let psi0 = [(20.0f64 / 90.0).atanh(), (15.0f64 / 90.0).ln()];
+
+        // Analytic: g at θ', c through θ, then η·∇ψ mean_k[c_k·A_C,k(ψ)].
+        let psi = t(&psi0, &[2]).set_requires_grad(true);
+        let after = problem.updated_policy(&psi.detach());
+        let g = objective_gradient(&problem.global_objective(&after), &after.params()).unwrap();
+        let log_probs = problem.theta.log_probs(&problem.obs, &problem.actions);
+        let c = log_prob_jvp(&log_probs, &problem.theta.params(), &g).unwrap();
+        let meta = (c * problem.coordinated(&psi)).mean(Kind::Double) * problem.eta;
+        let analytic =
+            Vec::<f64>::try_from(&objective_gradient(&meta, &[psi]).unwrap()[0]).unwrap();
+
+        let h = 1e-5;
+        for i in 0..2 {
+            let (mut up, mut down) = (psi0, psi0);
+            up[i] += h;
+            down[i] -= h;
+            let numeric = (problem.objective(&up) - problem.objective(&down)) / (2.0 * h);
+            assert!(
+                numeric.abs() > 1e-4,
+                "a vanishing gradient proves nothing: {numeric}"
+            );
+            let error = (analytic[i] - numeric).abs() / numeric.abs();
+            assert!(
+                error < 1e-6,
+                "∂J/∂ψ[{i}]: analytic {} vs central difference {numeric}",
+                analytic[i]
+            );
+        }
+    }
+
+    #[test]
+    fn the_jacobian_vector_product_is_the_directional_derivative_of_each_log_prob() {
+        tch::manual_seed(12);
+        let theta = Tiny {
+            w1: Tensor::randn([3, 4], F64).set_requires_grad(true),
+            w2: Tensor::randn([4, 2], F64).set_requires_grad(true),
+            log_std: t(&[0.1, -0.2], &[2]).set_requires_grad(true),
+        };
+        let (obs, actions) = (Tensor::randn([5, 3], F64), Tensor::randn([5, 2], F64));
+        let direction: Vec<Tensor> = theta
+            .params()
+            .iter()
+            .map(|p| Tensor::randn(p.size(), F64))
+            .collect();
+        let c = log_prob_jvp(
+            &theta.log_probs(&obs, &actions),
+            &theta.params(),
+            &direction,
+        )
+        .unwrap();
+        let h = 1e-6;
+        let at = |eta: f64| theta.moved(&direction, eta).log_probs(&obs, &actions);
+        let numeric = (at(h) - at(-h)) / (2.0 * h);
+        let error = f64::try_from((&c - &numeric).abs().max()).unwrap();
+        assert!(error < 1e-6, "{c} vs {numeric}");
+    }
+}
