@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod grpc;
 pub mod metrics;
+pub mod reconnect;
 pub mod render;
 pub mod replay;
 pub mod rollout;

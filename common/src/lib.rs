@@ -2,6 +2,7 @@
 //! observation/action layout, the policy network and metric names. Both `actor` and `learner`
 //! depend on this crate and never on each other.
 
+pub mod auth;
 pub mod config;
 pub mod fragment;
 pub mod lcf;

@@ -280,9 +280,13 @@ impl GaussianPolicy {
         let hidden_text: String = decoded.meta("hidden")?;
         let hidden = hidden_text
             .split(',')
-            .map(|h| h.parse::<i64>().ok().filter(|&h| h > 0 && h <= 1 << 16))
+            .map(|h| {
+                h.parse::<i64>()
+                    .ok()
+                    .filter(|&h| h > 0 && h <= crate::config::MAX_HIDDEN_WIDTH)
+            })
             .collect::<Option<Vec<i64>>>()
-            .filter(|h| !h.is_empty())
+            .filter(|h| !h.is_empty() && h.len() <= crate::config::MAX_HIDDEN_LAYERS)
             .ok_or_else(|| WeightsError::Metadata {
                 key: "hidden".into(),
             })?;
@@ -292,6 +296,17 @@ impl GaussianPolicy {
         {
             return Err(WeightsError::Metadata {
                 key: "obs_dim/action_dim".into(),
+            });
+        }
+        // The network is built (allocated) only once the blob is known to hold that many
+        // values: metadata alone must not be able to ask for gigabytes.
+        let needed = parameter_count(obs_dim, action_dim, &hidden);
+        if needed > decoded.total_values() {
+            return Err(WeightsError::Metadata {
+                key: format!(
+                    "hidden (describes {needed} values, the blob holds {})",
+                    decoded.total_values()
+                ),
             });
         }
         let policy = GaussianPolicy::new(device, obs_dim, action_dim, &hidden, 0.0);
@@ -309,6 +324,19 @@ impl GaussianPolicy {
         weights::load_var_store(&self.vs, &mut decoded)?;
         Ok(meta)
     }
+}
+
+/// Values a policy of these sizes stores: the MLP's weights and biases, the log-std and the
+/// normaliser (mean, variance, count). Inputs are bounded by the callers' checks, so no
+/// overflow.
+fn parameter_count(obs_dim: i64, action_dim: i64, hidden: &[i64]) -> i64 {
+    let mut width = obs_dim;
+    let mut total = 0;
+    for &size in hidden.iter().chain(std::iter::once(&action_dim)) {
+        total += width * size + size;
+        width = size;
+    }
+    total + action_dim + 2 * obs_dim + 1
 }
 
 /// log N(actions | mean, exp(log_std)), summed over action dimensions.

@@ -99,10 +99,21 @@ impl Decoded {
             if values.iter().any(|v| !v.is_finite()) {
                 return Err(WeightsError::NonFinite { name });
             }
-            let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
-            tensors.insert(name, Tensor::from_slice(&values).reshape(&shape));
+            let shape = view
+                .shape()
+                .iter()
+                .map(|&d| i64::try_from(d))
+                .collect::<Result<Vec<i64>, _>>()
+                .map_err(|_| WeightsError::Format(format!("tensor {name:?} has a huge shape")))?;
+            let tensor = Tensor::from_slice(&values).f_reshape(&shape)?;
+            tensors.insert(name, tensor);
         }
         Ok(Decoded { tensors, metadata })
+    }
+
+    /// Values held over all tensors (what a blob can fill, whatever its metadata claims).
+    pub fn total_values(&self) -> i64 {
+        self.tensors.values().map(Tensor::numel).map(|n| n as i64).sum()
     }
 
     /// The tensor `name`, checked against `expected` shape.

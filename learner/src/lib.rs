@@ -6,6 +6,7 @@ pub mod bench;
 pub mod checkpoint;
 pub mod metrics;
 pub mod optim;
+pub mod security;
 pub mod server;
 pub mod stats;
 pub mod trainer;

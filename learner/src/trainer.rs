@@ -19,7 +19,7 @@ use junction_common::weights;
 
 use crate::algo::{Algorithm, Stage, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
-use crate::metrics::DROP_STALE;
+use crate::metrics::{DROP_SHUTDOWN, DROP_STALE, DROP_UPDATE_FAILED};
 use crate::server::Shared;
 use crate::stats::EpisodeWindow;
 
@@ -107,6 +107,8 @@ impl Trainer {
             started,
         };
         let start_progress = self.progress;
+        // A resumed run answers Status with its restored counters from the start.
+        self.publish_status(&reporter, &window.summary());
         let _span = tracing::info_span!("trainer", algorithm = self.algorithm.name()).entered();
         tracing::info!(version = self.progress.version, "training started");
         loop {
@@ -139,26 +141,15 @@ impl Trainer {
                     }
                     let metrics = &self.shared.metrics;
                     metrics.record_fragment(&config.scenario.name, &fragment);
-                    let lag = self
-                        .progress
-                        .version
-                        .saturating_sub(fragment.behaviour_version);
+                    // Both directions: a fragment from a *newer* version comes from a learner
+                    // that died after its last checkpoint; its weights are as far from ours.
+                    let lag = self.progress.version.abs_diff(fragment.behaviour_version);
                     metrics.policy_lag.observe(lag as f64);
                     if lag > config.learner.max_policy_lag {
-                        metrics
-                            .fragments_dropped
-                            .with_label_values(&[DROP_STALE])
-                            .inc();
+                        metrics.record_drop(DROP_STALE, std::slice::from_ref(&fragment));
                         tracing::debug!(lag, actor = %fragment.actor_id, "dropped stale fragment");
                     } else {
                         pending_env_steps += fragment.steps;
-                        self.progress.env_steps += fragment.steps as u64;
-                        self.progress.agent_steps += fragment.agent_steps() as u64;
-                        self.shared.metrics.env_steps.inc_by(fragment.steps as u64);
-                        self.shared
-                            .metrics
-                            .agent_steps
-                            .inc_by(fragment.agent_steps() as u64);
                         pending.push(fragment);
                     }
                 }
@@ -174,8 +165,29 @@ impl Trainer {
                 self.report(&mut reporter, &window)?;
             }
         }
+        // Nothing accepted goes uncounted: refuse new fragments, then count what was queued
+        // or waiting for a full batch.
+        self.queue.close();
+        while let Ok(fragment) = self.queue.try_recv() {
+            reporter.episodes += fragment.episodes.len() as u64;
+            for episode in &fragment.episodes {
+                window.push(*episode);
+            }
+            self.shared
+                .metrics
+                .record_fragment(&config.scenario.name, &fragment);
+            pending.push(fragment);
+        }
+        self.shared.metrics.queue_fragments.set(0);
+        if !pending.is_empty() {
+            tracing::info!(
+                fragments = pending.len(),
+                agent_steps = pending.iter().map(RolloutFragment::agent_steps).sum::<usize>(),
+                "run ended with fragments short of a batch: counted as dropped (shutdown)"
+            );
+            self.shared.metrics.record_drop(DROP_SHUTDOWN, &pending);
+        }
         self.report(&mut reporter, &window)?;
-        // The checkpoint counts every agent-step received, so the stage it implies is logged.
         self.advance_stage();
         self.checkpoint()?;
         let last = weights_message(
@@ -194,11 +206,18 @@ impl Trainer {
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
             Err(e) => {
-                tracing::warn!(error = %e, "update skipped");
+                tracing::warn!(error = %e, "update skipped; its fragments are counted as dropped (update_failed)");
+                self.shared.metrics.record_drop(DROP_UPDATE_FAILED, batch);
                 return Ok(());
             }
         };
         let seconds = started.elapsed().as_secs_f64();
+        let env_steps: u64 = batch.iter().map(|f| f.steps as u64).sum();
+        let agent_steps: u64 = batch.iter().map(|f| f.agent_steps() as u64).sum();
+        self.progress.env_steps += env_steps;
+        self.progress.agent_steps += agent_steps;
+        self.shared.metrics.env_steps.inc_by(env_steps);
+        self.shared.metrics.agent_steps.inc_by(agent_steps);
         self.progress.version += 1;
         self.progress.updates += 1;
         self.progress.samples_trained += stats.samples_trained as u64;
@@ -264,6 +283,8 @@ impl Trainer {
                 .map(|d| d.as_secs())
                 .unwrap_or(0),
             config: self.shared.config.to_toml(),
+            actors_registered: self.shared.actors_registered(),
+            format_version: crate::checkpoint::FORMAT_VERSION,
         };
         let path = self.checkpointer.write(&meta, &policy, &state)?;
         tracing::info!(version = p.version, path = %path.display(), "checkpoint written");
@@ -292,15 +313,7 @@ impl Trainer {
             queue = self.queue.len(),
             "progress"
         );
-        if let Ok(mut status) = self.shared.status.lock() {
-            status.policy_version = self.progress.version;
-            status.agent_steps_consumed = self.progress.agent_steps;
-            status.samples_trained = self.progress.samples_trained;
-            status.success_rate = summary.success_rate;
-            status.crash_rate = summary.crash_rate;
-            status.mean_episode_reward = summary.mean_reward;
-            status.episodes = reporter.episodes;
-        }
+        self.publish_status(reporter, &summary);
         let line = serde_json::json!({
             "elapsed_s": reporter.started.elapsed().as_secs_f64(),
             "unix_s": SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0),
@@ -310,6 +323,10 @@ impl Trainer {
             "env_steps": self.progress.env_steps,
             "samples_trained": self.progress.samples_trained,
             "agent_steps_per_s": rate,
+            // This process's ingest accounting: every accepted agent-step is trained on or
+            // dropped for a reason (in the final line, after the shutdown count).
+            "accepted_agent_steps": self.shared.metrics.agent_steps_accepted.get(),
+            "dropped_agent_steps": self.shared.metrics.dropped_agent_steps().into_iter().collect::<std::collections::BTreeMap<_, _>>(),
             "scenario": scenario,
             "window": summary,
         });
@@ -321,6 +338,20 @@ impl Trainer {
         writeln!(file, "{line}")
             .with_context(|| format!("writing {}", self.progress_log.display()))?;
         Ok(())
+    }
+}
+
+impl Trainer {
+    fn publish_status(&self, reporter: &Reporter, summary: &crate::stats::WindowSummary) {
+        if let Ok(mut status) = self.shared.status.lock() {
+            status.policy_version = self.progress.version;
+            status.agent_steps_consumed = self.progress.agent_steps;
+            status.samples_trained = self.progress.samples_trained;
+            status.success_rate = summary.success_rate;
+            status.crash_rate = summary.crash_rate;
+            status.mean_episode_reward = summary.mean_reward;
+            status.episodes = reporter.episodes;
+        }
     }
 }
 
