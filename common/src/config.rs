@@ -962,6 +962,51 @@ mod tests {
     }
 
     #[test]
+    fn absurd_sizes_and_half_configured_security_are_refused() {
+        for bad in [
+            "scenario.agents=1000000",
+            "scenario.sensors.lidar_beams=100000",
+            "ppo.hidden=[100000]",
+            "ppo.hidden=[8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8]",
+            "rollout.fragment_length=1000000",
+            "learner.ingest_queue_fragments=100000000",
+            "server.max_message_bytes=1000",
+            "server.max_rollout_streams=0",
+            "server.max_concurrent_streams=1",
+            "server.keepalive_interval_s=0",
+            "server.keepalive_timeout_s=nan",
+            "server.tls_cert=\"cert.pem\"",
+            "server.tls_client_ca=\"ca.pem\"",
+        ] {
+            let err = RunConfig::load(None, &[bad.into()]);
+            assert!(
+                matches!(err, Err(ConfigError::Invalid(_)) | Err(ConfigError::Parse { .. })),
+                "{bad} was accepted: {err:?}"
+            );
+        }
+        // A fragment that cannot fit the message limit: 2000 steps x 30 agents x 91 values.
+        let err = RunConfig::load(
+            None,
+            &[
+                "rollout.fragment_length=2000".into(),
+                "server.max_message_bytes=4000000".into(),
+            ],
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("server.max_message_bytes"), "{err}");
+        let tls = RunConfig::load(
+            None,
+            &[
+                "server.tls_cert=\"c.pem\"".into(),
+                "server.tls_key=\"k.pem\"".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(ServerSection::path(&tls.server.tls_cert), Some(Path::new("c.pem")));
+        assert_eq!(ServerSection::path(&tls.server.auth_token_file), None);
+    }
+
+    #[test]
     fn with_agents_changes_only_the_agent_count() {
         let heavy = ScenarioConfig {
             traffic: Traffic::Light,

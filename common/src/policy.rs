@@ -384,6 +384,60 @@ mod tests {
         assert!((h - (ln2pi + 1.0 + (2.0f64).ln())).abs() < 1e-5);
     }
 
+    /// A blob with `metadata` and one small tensor.
+    fn blob_with_metadata(metadata: &[(&str, &str)]) -> Vec<u8> {
+        let metadata = metadata
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        let x = Tensor::from_slice(&[1.0f32; 4]);
+        weights::encode(&[("x".into(), &x)], metadata).unwrap()
+    }
+
+    #[test]
+    fn hostile_metadata_is_refused_before_anything_is_allocated() {
+        let base = [
+            ("version", "1"),
+            ("obs_layout_version", "1"),
+            ("obs_dim", "65536"),
+            ("action_dim", "2"),
+        ];
+        // 16 layers of 65536 would be ~69 G values: refused from the blob's 4 values alone.
+        let huge = vec!["65536"; 16].join(",");
+        for hidden in [huge.as_str(), "65536,65536", "8"] {
+            let mut metadata = base.to_vec();
+            metadata.push(("hidden", hidden));
+            let err = GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu)
+                .unwrap_err();
+            assert!(matches!(err, WeightsError::Metadata { .. }), "{hidden}: {err}");
+        }
+        for (key, value) in [
+            ("hidden", "0"),
+            ("hidden", "-3"),
+            ("hidden", ""),
+            ("hidden", "65537"),
+            ("obs_dim", "0"),
+            ("action_dim", "65"),
+            ("version", "not a number"),
+        ] {
+            let mut metadata: Vec<(&str, &str)> = base.to_vec();
+            metadata.retain(|(k, _)| *k != key);
+            metadata.push((key, value));
+            if key != "hidden" {
+                metadata.push(("hidden", "8"));
+            }
+            assert!(
+                GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu).is_err(),
+                "{key} = {value:?} was accepted"
+            );
+        }
+        // Too many layers, even small ones.
+        let mut metadata = base.to_vec();
+        let many = vec!["1"; crate::config::MAX_HIDDEN_LAYERS + 1].join(",");
+        metadata.push(("hidden", &many));
+        assert!(GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu).is_err());
+    }
+
     #[test]
     fn weights_round_trip_reproduce_actions_and_reject_other_shapes() {
         tch::manual_seed(3);

@@ -211,4 +211,46 @@ mod tests {
         .unwrap();
         assert!(Decoded::decode(&ok[..ok.len() - 3]).is_err());
     }
+
+    /// A safetensors header written by hand: `json` then `data`.
+    fn raw_blob(json: &str, data: &[u8]) -> Vec<u8> {
+        let mut bytes = (json.len() as u64).to_le_bytes().to_vec();
+        bytes.extend_from_slice(json.as_bytes());
+        bytes.extend_from_slice(data);
+        bytes
+    }
+
+    #[test]
+    fn hostile_headers_are_errors_not_panics() {
+        // A zero-sized tensor with a dimension beyond i64: the product is 0, so the data
+        // length checks out, but no tensor of that shape can exist.
+        let huge = raw_blob(
+            r#"{"x":{"dtype":"F32","shape":[0,18446744073709551615],"data_offsets":[0,0]}}"#,
+            &[],
+        );
+        assert!(Decoded::decode(&huge).is_err());
+        // Data offsets past the end, other dtypes, a header longer than the blob.
+        let past = raw_blob(
+            r#"{"x":{"dtype":"F32","shape":[2],"data_offsets":[0,8]}}"#,
+            &[0; 4],
+        );
+        assert!(Decoded::decode(&past).is_err());
+        let ints = raw_blob(
+            r#"{"x":{"dtype":"I32","shape":[1],"data_offsets":[0,4]}}"#,
+            &[0; 4],
+        );
+        assert!(matches!(
+            Decoded::decode(&ints),
+            Err(WeightsError::Dtype { .. })
+        ));
+        let mut long_header = raw_blob("{}", &[]);
+        long_header[..8].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(Decoded::decode(&long_header).is_err());
+        // Metadata that is not our JSON object.
+        let bad_meta = raw_blob(r#"{"__metadata__":{"junction":"[1,2"}}"#, &[]);
+        assert!(matches!(
+            Decoded::decode(&bad_meta),
+            Err(WeightsError::Metadata { .. })
+        ));
+    }
 }

@@ -314,6 +314,48 @@ mod tests {
     }
 
     #[test]
+    fn a_version_written_before_a_restart_is_replaced_not_kept() {
+        let dir = temp_dir("restart");
+        let before = Checkpointer::new(dir.clone(), 3).unwrap();
+        before.write(&meta(5), b"old lineage", b"s").unwrap();
+        // This process wrote version 5: writing it again keeps it (no update since).
+        before.write(&meta(5), b"ignored", b"s").unwrap();
+        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().policy, b"old lineage");
+        // A learner restarted from an older checkpoint reaches version 5 again with other
+        // weights: its checkpoint must win.
+        let after = Checkpointer::new(dir.clone(), 3).unwrap();
+        after.write(&meta(5), b"new lineage", b"s").unwrap();
+        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().policy, b"new lineage");
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn newer_formats_are_refused_and_damaged_checkpoints_set_aside() {
+        let dir = temp_dir("format");
+        let c = Checkpointer::new(dir.clone(), 5).unwrap();
+        c.write(&meta(1), b"p1", b"s1").unwrap();
+        let mut future = meta(2);
+        future.format_version = FORMAT_VERSION + 1;
+        let path = c.write(&future, b"p2", b"s2").unwrap();
+        let err = Checkpointer::read(&path).err().unwrap();
+        assert!(matches!(err, CheckpointError::Format { .. }), "{err}");
+        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().meta.version, 1);
+        // Older checkpoints (no format_version, no actors_registered) still read.
+        let old_meta = fs::read_to_string(dir.join("ckpt-0000000001").join(META_FILE)).unwrap();
+        let mut value: serde_json::Value = serde_json::from_str(&old_meta).unwrap();
+        value.as_object_mut().unwrap().remove("format_version");
+        value.as_object_mut().unwrap().remove("actors_registered");
+        fs::write(dir.join("ckpt-0000000001").join(META_FILE), value.to_string()).unwrap();
+        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().meta.format_version, 1);
+        // Setting one aside takes it out of resumes and pruning.
+        let aside = Checkpointer::set_aside(&path).unwrap();
+        assert!(aside.ends_with("damaged-ckpt-0000000002"), "{}", aside.display());
+        let left: Vec<PathBuf> = Checkpointer::newest_first(&dir).unwrap();
+        assert_eq!(left, vec![dir.join("ckpt-0000000001")]);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
     fn interrupted_and_damaged_writes_fall_back_to_the_previous_checkpoint() {
         let dir = temp_dir("damaged");
         let c = Checkpointer::new(dir.clone(), 5).unwrap();

@@ -369,3 +369,119 @@ fn log_update(stats: &UpdateStats, seconds: f64) {
         "update"
     );
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo;
+    use crate::metrics::LearnerMetrics;
+    use junction_common::config::RunConfig;
+    use junction_common::lcf;
+
+    /// 2 steps of `agents` live agents of the default scenario, from policy `version`.
+    fn fragment(agents: usize, version: u64) -> RolloutFragment {
+        let (steps, obs_dim) = (2, 91);
+        let cells = steps * agents;
+        RolloutFragment {
+            actor_id: "test".into(),
+            behaviour_version: version,
+            scenario: "intersection".into(),
+            steps,
+            agents,
+            obs_dim,
+            action_dim: 2,
+            obs: vec![0.5; cells * obs_dim],
+            actions: vec![0.1; cells * 2],
+            log_probs: vec![-1.0; cells],
+            rewards: vec![0.3; cells],
+            costs: vec![0.0; cells],
+            dones: vec![false; cells],
+            alive: vec![true; cells],
+            bootstrap_obs: vec![0.5; agents * obs_dim],
+            neighbour_offsets: vec![0; cells + 1],
+            lcf_features: vec![0.5; cells * lcf::FEATURES],
+            sim_seconds: 0.2,
+            ..RolloutFragment::default()
+        }
+    }
+
+    #[test]
+    fn every_received_agent_step_is_trained_or_dropped_by_reason() {
+        let config = RunConfig::load(
+            None,
+            &[
+                "ppo.hidden=[8]".into(),
+                "ppo.epochs=1".into(),
+                "ppo.train_batch_env_steps=4".into(),
+                "run.max_updates=1".into(),
+                "run.max_seconds=60".into(),
+                "run.checkpoint_every_updates=0".into(),
+                "learner.max_policy_lag=2".into(),
+            ],
+        )
+        .unwrap();
+        let dir = std::env::temp_dir().join(format!("junction-trainer-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        // As on the learner's blocking thread: inside the runtime's context.
+        let _context = runtime.enter();
+        let algorithm = algo::build(&config, tch::Device::Cpu);
+        let initial = weights_message(algorithm.as_ref(), 0, 1, false).unwrap();
+        let metrics = LearnerMetrics::new().unwrap();
+        let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
+        let (tx, queue) = mpsc::channel(16);
+        // Fresh 3 agents; stale by 5 versions in the future (a learner that died after its
+        // checkpoint); fresh 2 agents: the batch is full, one update, the budget is spent.
+        // Then two more wait in the queue when the run ends.
+        let sent = [
+            fragment(3, 0),
+            fragment(4, 5),
+            fragment(2, 0),
+            fragment(1, 1),
+            fragment(5, 0),
+        ];
+        for f in &sent {
+            tx.try_send(f.clone()).unwrap();
+        }
+        let trainer = Trainer {
+            shared: Arc::clone(&shared),
+            algorithm,
+            queue,
+            runtime: runtime.handle().clone(),
+            checkpointer: Checkpointer::new(dir.join("checkpoints"), 1).unwrap(),
+            progress_log: dir.join("progress.jsonl"),
+            stop: Arc::new(AtomicBool::new(false)),
+            progress: Progress::default(),
+            stage: Stage {
+                index: 0,
+                agents: 30,
+            },
+        };
+        let progress = trainer.run().unwrap();
+        let m = &shared.metrics;
+        let dropped = |reason: &str| m.agent_steps_dropped.with_label_values(&[reason]).get();
+        assert_eq!((progress.version, progress.agent_steps), (1, 2 * (3 + 2)));
+        assert_eq!(m.agent_steps.get(), 10);
+        assert_eq!(dropped(DROP_STALE), 2 * 4);
+        assert_eq!(dropped(DROP_SHUTDOWN), 2 * (1 + 5));
+        assert_eq!(dropped(DROP_UPDATE_FAILED), 0);
+        let total: u64 = sent.iter().map(|f| f.agent_steps() as u64).sum();
+        assert_eq!(m.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN), total);
+        assert_eq!(
+            m.fragments_dropped.with_label_values(&[DROP_SHUTDOWN]).get(),
+            2
+        );
+        // The queue is closed: nothing can be accepted after the final count.
+        assert!(tx.try_send(fragment(1, 1)).is_err());
+        // The last progress line carries the same accounting.
+        let log = std::fs::read_to_string(dir.join("progress.jsonl")).unwrap();
+        let last: serde_json::Value = serde_json::from_str(log.lines().last().unwrap()).unwrap();
+        assert_eq!(last["dropped_agent_steps"]["shutdown"], 12);
+        assert_eq!(last["dropped_agent_steps"]["stale"], 8);
+        assert_eq!(last["agent_steps"], 10);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
