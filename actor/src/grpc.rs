@@ -30,6 +30,8 @@ use crate::rollout::{RolloutWorker, derive_seed};
 const OUTBOX_FRAGMENTS: usize = 4;
 /// How long one connection attempt, a registration or the first weights may take.
 const CALL_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a broken rollout stream waits for the learner's end-of-run message.
+const FINISH_GRACE: Duration = Duration::from_secs(2);
 /// HTTP/2 pings that notice a learner host that vanished without closing the connection.
 const KEEPALIVE: Duration = Duration::from_secs(20);
 
@@ -362,13 +364,17 @@ impl Actor {
         let reconnect = self.terms.is_some();
         self.metrics.connected.set(1);
         self.actor_id.send_replace(actor_id.clone());
-        tracing::Span::current()
-            .record("id", actor_id.as_str())
-            .record("scenario", scenario.name.as_str());
         if reconnect {
             self.metrics.reconnects.inc();
-            tracing::info!(version = first.version, "reconnected and registered again");
+            tracing::info!(
+                new_id = %actor_id,
+                version = first.version,
+                "reconnected and registered again"
+            );
         } else {
+            tracing::Span::current()
+                .record("id", actor_id.as_str())
+                .record("scenario", scenario.name.as_str());
             tracing::info!(scenes = self.options.scenes, "registered");
         }
         let finished_now = first.run_finished;
@@ -427,7 +433,21 @@ impl Actor {
                     }
                     // The learner ends streams when training is over; that is not a failure.
                     Err(_) if finished.load(Ordering::Relaxed) => SessionEnd::Finished,
-                    Err(status) => call_failed(status, "the learner ended the rollout stream", true),
+                    Err(status) => {
+                        // It announces the end of a run on the policy stream before it stops
+                        // taking fragments; that message may still be on its way.
+                        let announced = following
+                            && matches!(
+                                tokio::time::timeout(FINISH_GRACE, &mut follow).await,
+                                Ok(Ok(()))
+                            );
+                        if announced {
+                            finished.store(true, Ordering::Relaxed);
+                            SessionEnd::Finished
+                        } else {
+                            call_failed(status, "the learner ended the rollout stream", true)
+                        }
+                    }
                 },
                 followed = &mut follow, if following => match followed {
                     // The run is over: keep pushing until the rollout thread has stopped and

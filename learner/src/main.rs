@@ -295,6 +295,8 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let metrics_listener = bind(&config.server.metrics_addr, "metrics").await?;
     let grpc_addr = grpc_listener.local_addr()?;
     let metrics_addr = metrics_listener.local_addr()?;
+    // Clears what an interrupted checkpoint write left behind before anyone is told we serve.
+    let checkpointer = Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?;
     write_endpoints(&run_dir, grpc_addr, metrics_addr)?;
     tracing::info!(
         grpc = %grpc_addr,
@@ -357,7 +359,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         algorithm,
         queue: queue_rx,
         runtime: tokio::runtime::Handle::current(),
-        checkpointer: Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?,
+        checkpointer,
         progress_log: run_dir.join("progress.jsonl"),
         stop,
         progress,

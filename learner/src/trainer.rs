@@ -165,6 +165,16 @@ impl Trainer {
                 self.report(&mut reporter, &window)?;
             }
         }
+        // Tell actors the run is over before refusing their fragments, so they take the
+        // streams that end next for the end of the run, not for a failure.
+        self.advance_stage();
+        let last = weights_message(
+            self.algorithm.as_ref(),
+            self.progress.version,
+            self.stage.agents,
+            true,
+        )?;
+        self.shared.weights.send_replace(Arc::new(last));
         // Nothing accepted goes uncounted: refuse new fragments, then count what was queued
         // or waiting for a full batch.
         self.queue.close();
@@ -188,15 +198,7 @@ impl Trainer {
             self.shared.metrics.record_drop(DROP_SHUTDOWN, &pending);
         }
         self.report(&mut reporter, &window)?;
-        self.advance_stage();
         self.checkpoint()?;
-        let last = weights_message(
-            self.algorithm.as_ref(),
-            self.progress.version,
-            self.stage.agents,
-            true,
-        )?;
-        self.shared.weights.send_replace(Arc::new(last));
         Ok(self.progress)
     }
 
