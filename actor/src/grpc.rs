@@ -114,7 +114,10 @@ fn endpoint(options: &ActorOptions) -> anyhow::Result<Endpoint> {
 struct TokenHeader(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
 
 impl Interceptor for TokenHeader {
-    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+    fn call(
+        &mut self,
+        mut request: tonic::Request<()>,
+    ) -> Result<tonic::Request<()>, tonic::Status> {
         if let Some(value) = &self.0 {
             request.metadata_mut().insert(auth::HEADER, value.clone());
         }
@@ -300,7 +303,11 @@ impl Actor {
         let header = match &self.options.token {
             Some(token) => match token.header_value().parse() {
                 Ok(value) => Some(value),
-                Err(_) => return SessionEnd::Fatal(anyhow::anyhow!("the auth token is not a valid header value")),
+                Err(_) => {
+                    return SessionEnd::Fatal(anyhow::anyhow!(
+                        "the auth token is not a valid header value"
+                    ));
+                }
             },
             None => None,
         };
@@ -351,10 +358,18 @@ impl Actor {
         let first = match tokio::time::timeout(CALL_TIMEOUT, policy_stream.message()).await {
             Ok(Ok(Some(weights))) => weights,
             Ok(Ok(None)) => {
-                return lost(anyhow::anyhow!("the learner closed the policy stream before sending weights"), false);
+                return lost(
+                    anyhow::anyhow!("the learner closed the policy stream before sending weights"),
+                    false,
+                );
             }
             Ok(Err(status)) => return call_failed(status, "receiving the first policy", false),
-            Err(_) => return lost(anyhow::anyhow!("the first policy did not arrive in time"), false),
+            Err(_) => {
+                return lost(
+                    anyhow::anyhow!("the first policy did not arrive in time"),
+                    false,
+                );
+            }
         };
         if let Err(e) = check_weights(&first) {
             return SessionEnd::Fatal(e);
@@ -527,9 +542,7 @@ impl Actor {
 }
 
 /// How the rollout thread ended, as the end of the session that noticed.
-fn rollout_ended(
-    joined: Result<anyhow::Result<()>, tokio::task::JoinError>,
-) -> SessionEnd {
+fn rollout_ended(joined: Result<anyhow::Result<()>, tokio::task::JoinError>) -> SessionEnd {
     match joined {
         Ok(Ok(())) => SessionEnd::Finished,
         Ok(Err(e)) => SessionEnd::Fatal(e),
@@ -556,7 +569,11 @@ async fn follow_policy(
                 }
             }
             Ok(None) => bail!("the learner closed the policy stream"),
-            Err(status) => bail!("policy stream failed: {} ({:?})", status.message(), status.code()),
+            Err(status) => bail!(
+                "policy stream failed: {} ({:?})",
+                status.message(),
+                status.code()
+            ),
         }
     }
 }
@@ -571,7 +588,11 @@ fn check_weights(weights: &proto::PolicyWeights) -> anyhow::Result<()> {
         );
     }
     if weights.format != "safetensors" {
-        bail!("policy v{} has unknown format {:?}", weights.version, weights.format);
+        bail!(
+            "policy v{} has unknown format {:?}",
+            weights.version,
+            weights.format
+        );
     }
     Ok(())
 }

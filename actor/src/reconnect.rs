@@ -176,16 +176,30 @@ mod tests {
         for sequence in 0..3 {
             tx.send(fragment(sequence)).await.unwrap();
         }
-        let (first_ended, taken) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
-        let mut first = OutboxStream::new(Arc::clone(&outbox), Arc::clone(&first_ended), Arc::clone(&taken));
+        let (first_ended, taken) = (
+            Arc::new(AtomicBool::new(false)),
+            Arc::new(AtomicU64::new(0)),
+        );
+        let mut first = OutboxStream::new(
+            Arc::clone(&outbox),
+            Arc::clone(&first_ended),
+            Arc::clone(&taken),
+        );
         assert_eq!(first.next().await.map(|f| f.sequence), Some(0));
         first_ended.store(true, Ordering::Release);
-        assert!(first.next().await.is_none(), "a broken connection's stream stops");
-        let mut second = OutboxStream::new(outbox, Arc::new(AtomicBool::new(false)), Arc::clone(&taken));
+        assert!(
+            first.next().await.is_none(),
+            "a broken connection's stream stops"
+        );
+        let mut second =
+            OutboxStream::new(outbox, Arc::new(AtomicBool::new(false)), Arc::clone(&taken));
         assert_eq!(second.next().await.map(|f| f.sequence), Some(1));
         assert_eq!(second.next().await.map(|f| f.sequence), Some(2));
         drop(tx);
-        assert!(second.next().await.is_none(), "the rollout side closed the outbox");
+        assert!(
+            second.next().await.is_none(),
+            "the rollout side closed the outbox"
+        );
         assert_eq!(taken.load(Ordering::Relaxed), 3);
     }
 }

@@ -23,9 +23,7 @@ pub enum AuthError {
         path: String,
         source: std::io::Error,
     },
-    #[error(
-        "both {TOKEN_ENV} and a token file are set; set one (they would have to agree anyway)"
-    )]
+    #[error("both {TOKEN_ENV} and a token file are set; set one (they would have to agree anyway)")]
     TwoSources,
     #[error(
         "the auth token from {origin} must be {MIN_TOKEN_BYTES} to {MAX_TOKEN_BYTES} visible ASCII characters (got {len} bytes)"

@@ -980,7 +980,10 @@ mod tests {
         ] {
             let err = RunConfig::load(None, &[bad.into()]);
             assert!(
-                matches!(err, Err(ConfigError::Invalid(_)) | Err(ConfigError::Parse { .. })),
+                matches!(
+                    err,
+                    Err(ConfigError::Invalid(_)) | Err(ConfigError::Parse { .. })
+                ),
                 "{bad} was accepted: {err:?}"
             );
         }
@@ -993,7 +996,10 @@ mod tests {
             ],
         )
         .unwrap_err();
-        assert!(err.to_string().contains("server.max_message_bytes"), "{err}");
+        assert!(
+            err.to_string().contains("server.max_message_bytes"),
+            "{err}"
+        );
         let tls = RunConfig::load(
             None,
             &[
@@ -1002,7 +1008,10 @@ mod tests {
             ],
         )
         .unwrap();
-        assert_eq!(ServerSection::path(&tls.server.tls_cert), Some(Path::new("c.pem")));
+        assert_eq!(
+            ServerSection::path(&tls.server.tls_cert),
+            Some(Path::new("c.pem"))
+        );
         assert_eq!(ServerSection::path(&tls.server.auth_token_file), None);
     }
 

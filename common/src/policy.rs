@@ -409,7 +409,10 @@ mod tests {
             metadata.push(("hidden", hidden));
             let err = GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu)
                 .unwrap_err();
-            assert!(matches!(err, WeightsError::Metadata { .. }), "{hidden}: {err}");
+            assert!(
+                matches!(err, WeightsError::Metadata { .. }),
+                "{hidden}: {err}"
+            );
         }
         for (key, value) in [
             ("hidden", "0"),

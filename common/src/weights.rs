@@ -113,7 +113,11 @@ impl Decoded {
 
     /// Values held over all tensors (what a blob can fill, whatever its metadata claims).
     pub fn total_values(&self) -> i64 {
-        self.tensors.values().map(Tensor::numel).map(|n| n as i64).sum()
+        self.tensors
+            .values()
+            .map(Tensor::numel)
+            .map(|n| n as i64)
+            .sum()
     }
 
     /// The tensor `name`, checked against `expected` shape.

@@ -320,12 +320,18 @@ mod tests {
         before.write(&meta(5), b"old lineage", b"s").unwrap();
         // This process wrote version 5: writing it again keeps it (no update since).
         before.write(&meta(5), b"ignored", b"s").unwrap();
-        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().policy, b"old lineage");
+        assert_eq!(
+            Checkpointer::latest(&dir).unwrap().unwrap().policy,
+            b"old lineage"
+        );
         // A learner restarted from an older checkpoint reaches version 5 again with other
         // weights: its checkpoint must win.
         let after = Checkpointer::new(dir.clone(), 3).unwrap();
         after.write(&meta(5), b"new lineage", b"s").unwrap();
-        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().policy, b"new lineage");
+        assert_eq!(
+            Checkpointer::latest(&dir).unwrap().unwrap().policy,
+            b"new lineage"
+        );
         fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -345,11 +351,26 @@ mod tests {
         let mut value: serde_json::Value = serde_json::from_str(&old_meta).unwrap();
         value.as_object_mut().unwrap().remove("format_version");
         value.as_object_mut().unwrap().remove("actors_registered");
-        fs::write(dir.join("ckpt-0000000001").join(META_FILE), value.to_string()).unwrap();
-        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().meta.format_version, 1);
+        fs::write(
+            dir.join("ckpt-0000000001").join(META_FILE),
+            value.to_string(),
+        )
+        .unwrap();
+        assert_eq!(
+            Checkpointer::latest(&dir)
+                .unwrap()
+                .unwrap()
+                .meta
+                .format_version,
+            1
+        );
         // Setting one aside takes it out of resumes and pruning.
         let aside = Checkpointer::set_aside(&path).unwrap();
-        assert!(aside.ends_with("damaged-ckpt-0000000002"), "{}", aside.display());
+        assert!(
+            aside.ends_with("damaged-ckpt-0000000002"),
+            "{}",
+            aside.display()
+        );
         let left: Vec<PathBuf> = Checkpointer::newest_first(&dir).unwrap();
         assert_eq!(left, vec![dir.join("ckpt-0000000001")]);
         fs::remove_dir_all(&dir).unwrap();

@@ -338,14 +338,10 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             .tls_config(tls)
             .context("configuring TLS on the gRPC port")?;
     }
-    let grpc = tokio::spawn(
-        builder
-            .add_service(service)
-            .serve_with_incoming_shutdown(
-                TcpListenerStream::new(grpc_listener),
-                wait_for_shutdown(shutdown_rx.clone()),
-            ),
-    );
+    let grpc = tokio::spawn(builder.add_service(service).serve_with_incoming_shutdown(
+        TcpListenerStream::new(grpc_listener),
+        wait_for_shutdown(shutdown_rx.clone()),
+    ));
     let metrics_server = tokio::spawn(serve_metrics(
         metrics_listener,
         registry,
@@ -419,7 +415,10 @@ fn restore_newest(
             }
         }
     }
-    bail!("--resume: none of the {} checkpoints could be restored", candidates.len())
+    bail!(
+        "--resume: none of the {} checkpoints could be restored",
+        candidates.len()
+    )
 }
 
 enum RestoreError {

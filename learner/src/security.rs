@@ -68,7 +68,11 @@ fn read_pem(key: &'static str, value: &str, kind: Pem) -> Result<Option<Vec<u8>>
 pub fn server_tls(server: &ServerSection) -> Result<Option<ServerTlsConfig>, SecurityError> {
     let cert = read_pem("server.tls_cert", &server.tls_cert, Pem::Certificate)?;
     let key = read_pem("server.tls_key", &server.tls_key, Pem::PrivateKey)?;
-    let client_ca = read_pem("server.tls_client_ca", &server.tls_client_ca, Pem::Certificate)?;
+    let client_ca = read_pem(
+        "server.tls_client_ca",
+        &server.tls_client_ca,
+        Pem::Certificate,
+    )?;
     let (Some(cert), Some(key)) = (cert, key) else {
         // Config validation requires both or neither.
         return Ok(None);
@@ -113,7 +117,9 @@ impl Interceptor for TokenCheck {
         let message = match request.metadata().get(auth::HEADER) {
             Some(value) if token.accepts(value.as_bytes()) => return Ok(request),
             Some(_) => "wrong auth token",
-            None => "missing auth token: this learner requires one (actor --auth-token-file or JUNCTION_AUTH_TOKEN)",
+            None => {
+                "missing auth token: this learner requires one (actor --auth-token-file or JUNCTION_AUTH_TOKEN)"
+            }
         };
         self.refused
             .with_label_values(&[REFUSED_UNAUTHENTICATED])

@@ -192,7 +192,10 @@ impl Trainer {
         if !pending.is_empty() {
             tracing::info!(
                 fragments = pending.len(),
-                agent_steps = pending.iter().map(RolloutFragment::agent_steps).sum::<usize>(),
+                agent_steps = pending
+                    .iter()
+                    .map(RolloutFragment::agent_steps)
+                    .sum::<usize>(),
                 "run ended with fragments short of a batch: counted as dropped (shutdown)"
             );
             self.shared.metrics.record_drop(DROP_SHUTDOWN, &pending);
@@ -471,9 +474,14 @@ mod tests {
         assert_eq!(dropped(DROP_SHUTDOWN), 2 * (1 + 5));
         assert_eq!(dropped(DROP_UPDATE_FAILED), 0);
         let total: u64 = sent.iter().map(|f| f.agent_steps() as u64).sum();
-        assert_eq!(m.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN), total);
         assert_eq!(
-            m.fragments_dropped.with_label_values(&[DROP_SHUTDOWN]).get(),
+            m.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN),
+            total
+        );
+        assert_eq!(
+            m.fragments_dropped
+                .with_label_values(&[DROP_SHUTDOWN])
+                .get(),
             2
         );
         // The queue is closed: nothing can be accepted after the final count.

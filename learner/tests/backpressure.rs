@@ -105,7 +105,10 @@ async fn a_full_queue_stalls_the_stream_and_loses_nothing() {
         stalled_at <= QUEUE + 1 + in_flight,
         "{stalled_at} fragments of {size} bytes left the client with a queue of {QUEUE}"
     );
-    assert!(!push.is_finished(), "the stream completed while the queue was full");
+    assert!(
+        !push.is_finished(),
+        "the stream completed while the queue was full"
+    );
     assert_eq!(shared.metrics.fragments.get() as usize, QUEUE);
 
     // Drain: everything arrives, in order, and the summary counts all of it.
@@ -141,5 +144,9 @@ async fn a_full_queue_stalls_the_stream_and_loses_nothing() {
         .await
         .expect_err("queue closed");
     assert_eq!(refused.code(), tonic::Code::Unavailable, "{refused:?}");
-    assert_eq!(shared.metrics.fragments.get() as usize, SENT, "not counted as accepted");
+    assert_eq!(
+        shared.metrics.fragments.get() as usize,
+        SENT,
+        "not counted as accepted"
+    );
 }

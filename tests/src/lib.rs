@@ -360,13 +360,7 @@ pub fn checkpoint_versions(run_dir: &Path) -> Vec<u64> {
             entries
                 .flatten()
                 .filter(|e| e.path().join("meta.json").exists())
-                .filter_map(|e| {
-                    e.file_name()
-                        .to_str()?
-                        .strip_prefix("ckpt-")?
-                        .parse()
-                        .ok()
-                })
+                .filter_map(|e| e.file_name().to_str()?.strip_prefix("ckpt-")?.parse().ok())
                 .collect()
         })
         .unwrap_or_default();

@@ -22,7 +22,10 @@ fn resumed_version(learner: &Process) -> Option<u64> {
     let log = learner.log();
     let line = log.lines().rev().find(|l| l.contains("resumed"))?;
     let rest = &line[line.find("version=")? + "version=".len()..];
-    rest.split(|c: char| !c.is_ascii_digit()).next()?.parse().ok()
+    rest.split(|c: char| !c.is_ascii_digit())
+        .next()?
+        .parse()
+        .ok()
 }
 
 #[test]
@@ -255,8 +258,11 @@ fn a_learner_killed_while_writing_a_checkpoint_resumes_from_the_previous_one() {
     );
 
     // The previous checkpoint loads; the leftover is cleared; training goes on.
-    let (mut resumed, endpoints) =
-        start_learner(&run_dir, dir.path(), &["--resume", &run, "--max-seconds", "300"]);
+    let (mut resumed, endpoints) = start_learner(
+        &run_dir,
+        dir.path(),
+        &["--resume", &run, "--max-seconds", "300"],
+    );
     assert_eq!(
         resumed_version(&resumed),
         Some(complete),

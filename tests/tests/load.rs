@@ -45,8 +45,12 @@ fn fragment() -> proto::RolloutFragment {
         agents: AGENTS as u32,
         obs_dim: OBS_DIM as u32,
         action_dim: 2,
-        obs: (0..cells * OBS_DIM).map(|i| (i % 97) as f32 / 97.0).collect(),
-        actions: (0..cells * 2).map(|i| ((i % 13) as f32 - 6.0) / 6.0).collect(),
+        obs: (0..cells * OBS_DIM)
+            .map(|i| (i % 97) as f32 / 97.0)
+            .collect(),
+        actions: (0..cells * 2)
+            .map(|i| ((i % 13) as f32 - 6.0) / 6.0)
+            .collect(),
         log_probs: vec![-1.5; cells],
         rewards: (0..cells).map(|i| (i % 5) as f32 * 0.1).collect(),
         costs: vec![0.0; cells],
@@ -214,7 +218,10 @@ async fn thirty_two_connections_keep_memory_bounded_and_lose_no_agent_step() {
     let accepted = totals.agent_steps.load(Ordering::Relaxed);
     let m = tokio::task::block_in_place(|| scrape(&endpoints.metrics));
 
-    assert_eq!(connected_max, CONNECTIONS as f64, "not all connections streamed at once");
+    assert_eq!(
+        connected_max, CONNECTIONS as f64,
+        "not all connections streamed at once"
+    );
     assert_eq!(
         metric_sum(&m, "junction_learner_agent_steps_accepted_total"),
         accepted as f64,
@@ -224,7 +231,10 @@ async fn thirty_two_connections_keep_memory_bounded_and_lose_no_agent_step() {
         metric_sum(&m, "junction_learner_fragments_total"),
         totals.fragments.load(Ordering::Relaxed) as f64
     );
-    assert_eq!(metric_sum(&m, "junction_learner_fragments_rejected_total"), 0.0);
+    assert_eq!(
+        metric_sum(&m, "junction_learner_fragments_rejected_total"),
+        0.0
+    );
 
     // Stop the learner: it counts what is still queued or short of a batch, then reports.
     tokio::task::block_in_place(|| {
@@ -241,7 +251,11 @@ async fn thirty_two_connections_keep_memory_bounded_and_lose_no_agent_step() {
         serde_json::from_str(progress.lines().last().expect("a progress line")).expect("JSON");
     let trained = last["agent_steps"].as_u64().expect("agent_steps");
     let dropped = |reason: &str| last["dropped_agent_steps"][reason].as_u64().unwrap_or(0);
-    assert_eq!(last["accepted_agent_steps"].as_u64(), Some(accepted), "{last}");
+    assert_eq!(
+        last["accepted_agent_steps"].as_u64(),
+        Some(accepted),
+        "{last}"
+    );
     assert_eq!(
         trained + dropped("stale") + dropped("shutdown") + dropped("update_failed"),
         accepted,

@@ -6,7 +6,9 @@ use std::time::Duration;
 
 use junction_common::fragment::PROTOCOL_VERSION;
 use junction_common::proto::{self, learner_client::LearnerClient};
-use junction_tests::{QUICK_RUN, TempDir, metric_sum, scrape, start_actor, start_learner_with_env, wait_until};
+use junction_tests::{
+    QUICK_RUN, TempDir, metric_sum, scrape, start_actor, start_learner_with_env, wait_until,
+};
 use rcgen::{
     BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair,
     KeyUsagePurpose,
@@ -76,13 +78,20 @@ async fn tls_channel(dir: &Path, port: u16) -> Channel {
 
 /// Calls every RPC with `token` (or none) and returns their status codes.
 async fn every_rpc(channel: Channel, token: Option<&str>) -> Vec<(&'static str, Code)> {
-    let header = token.map(|t| format!("Bearer {t}").parse::<tonic::metadata::AsciiMetadataValue>().expect("header"));
-    let mut client = LearnerClient::with_interceptor(channel, move |mut request: tonic::Request<()>| {
-        if let Some(value) = &header {
-            request.metadata_mut().insert("authorization", value.clone());
-        }
-        Ok(request)
+    let header = token.map(|t| {
+        format!("Bearer {t}")
+            .parse::<tonic::metadata::AsciiMetadataValue>()
+            .expect("header")
     });
+    let mut client =
+        LearnerClient::with_interceptor(channel, move |mut request: tonic::Request<()>| {
+            if let Some(value) = &header {
+                request
+                    .metadata_mut()
+                    .insert("authorization", value.clone());
+            }
+            Ok(request)
+        });
     let code = |r: Result<tonic::Code, tonic::Status>| r.unwrap_or_else(|s| s.code());
     let register = client
         .register(proto::RegisterRequest {
@@ -92,7 +101,10 @@ async fn every_rpc(channel: Channel, token: Option<&str>) -> Vec<(&'static str, 
         })
         .await
         .map(|_| Code::Ok);
-    let status = client.status(proto::StatusRequest {}).await.map(|_| Code::Ok);
+    let status = client
+        .status(proto::StatusRequest {})
+        .await
+        .map(|_| Code::Ok);
     let watch = client
         .watch_policy(proto::WatchPolicyRequest {
             protocol_version: PROTOCOL_VERSION,
@@ -127,7 +139,10 @@ async fn mutual_tls_and_a_token_guard_every_rpc() {
         format!("server.tls_cert={:?}", pem("server.pem")),
         format!("server.tls_key={:?}", pem("server.key")),
         format!("server.tls_client_ca={:?}", pem("ca.pem")),
-        format!("server.auth_token_file={:?}", token_file.display().to_string()),
+        format!(
+            "server.auth_token_file={:?}",
+            token_file.display().to_string()
+        ),
         "server.max_rollout_streams=1".to_string(),
     ];
     let mut args: Vec<&str> = vec!["--addr", &addr, "--max-seconds", "300"];
@@ -135,9 +150,8 @@ async fn mutual_tls_and_a_token_guard_every_rpc() {
     for set in &sets {
         args.extend(["--set", set]);
     }
-    let (mut learner, endpoints) = tokio::task::block_in_place(|| {
-        start_learner_with_env(&run_dir, dir.path(), &args, &[])
-    });
+    let (mut learner, endpoints) =
+        tokio::task::block_in_place(|| start_learner_with_env(&run_dir, dir.path(), &args, &[]));
     // The token is not part of the recorded configuration.
     let recorded = std::fs::read_to_string(run_dir.join("config.toml")).expect("config.toml");
     assert!(!recorded.contains(TOKEN));
@@ -179,7 +193,10 @@ async fn mutual_tls_and_a_token_guard_every_rpc() {
             .ok()?;
         Some(every_rpc(channel, Some(TOKEN)).await)
     };
-    assert!(!served(anonymous.await), "a client without a certificate was served");
+    assert!(
+        !served(anonymous.await),
+        "a client without a certificate was served"
+    );
 
     // A real actor with the CA, its certificate and the token trains.
     let url = format!("https://localhost:{port}");
@@ -220,16 +237,25 @@ async fn mutual_tls_and_a_token_guard_every_rpc() {
     );
 
     // server.max_rollout_streams = 1, and the actor holds it: a second stream is refused.
-    let mut client = LearnerClient::with_interceptor(tls_channel(dir.path(), port).await, |mut r: tonic::Request<()>| {
-        r.metadata_mut().insert("authorization", format!("Bearer {TOKEN}").parse().expect("header"));
-        Ok(r)
-    });
+    let mut client = LearnerClient::with_interceptor(
+        tls_channel(dir.path(), port).await,
+        |mut r: tonic::Request<()>| {
+            r.metadata_mut().insert(
+                "authorization",
+                format!("Bearer {TOKEN}").parse().expect("header"),
+            );
+            Ok(r)
+        },
+    );
     let refused = client
         .push_rollouts(tokio_stream::iter(Vec::<proto::RolloutFragment>::new()))
         .await
         .expect_err("a second rollout stream");
     assert_eq!(refused.code(), Code::ResourceExhausted, "{refused:?}");
-    assert!(refused.message().contains("server.max_rollout_streams"), "{refused:?}");
+    assert!(
+        refused.message().contains("server.max_rollout_streams"),
+        "{refused:?}"
+    );
 
     // An actor with a wrong token stops at once with a clear error instead of retrying.
     let wrong = dir.path().join("wrong-token");
@@ -247,7 +273,11 @@ async fn mutual_tls_and_a_token_guard_every_rpc() {
         "the intruder did not fail: {status:?}\n{}",
         intruder.log_tail(20)
     );
-    assert!(intruder.log().contains("wrong auth token"), "{}", intruder.log_tail(20));
+    assert!(
+        intruder.log().contains("wrong auth token"),
+        "{}",
+        intruder.log_tail(20)
+    );
 
     let m = tokio::task::block_in_place(|| scrape(&endpoints.metrics));
     assert!(
@@ -282,6 +312,9 @@ fn an_actor_without_the_token_is_refused_and_says_why() {
     let status = actor.wait_exit(Duration::from_secs(30));
     assert!(status.is_some_and(|s| !s.success()), "{status:?}");
     let log = actor.log();
-    assert!(log.contains("Unauthenticated") && log.contains("missing auth token"), "{log}");
+    assert!(
+        log.contains("Unauthenticated") && log.contains("missing auth token"),
+        "{log}"
+    );
     learner.stop(Duration::from_secs(30));
 }
