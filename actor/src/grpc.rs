@@ -13,7 +13,7 @@ use tonic::service::Interceptor;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use junction_common::auth::{self, Token};
-use junction_common::config::{RunConfig, ScenarioConfig};
+use junction_common::config::{RolloutConfig, RunConfig, ScenarioConfig};
 use junction_common::fragment::{MAX_STEPS, PROTOCOL_VERSION};
 use junction_common::policy::GaussianPolicy;
 use junction_common::proto::{self, learner_client::LearnerClient};
@@ -171,9 +171,13 @@ impl RunTerms {
         if !(1..=MAX_STEPS).contains(&steps) {
             bail!("the learner asks for fragments of {steps} steps (1..={MAX_STEPS})");
         }
-        let mut run = RunConfig::default();
-        run.scenario = scenario.clone();
-        run.rollout.fragment_length = steps;
+        let run = RunConfig {
+            scenario: scenario.clone(),
+            rollout: RolloutConfig {
+                fragment_length: steps,
+            },
+            ..RunConfig::default()
+        };
         let bytes = run.fragment_bytes_estimate();
         if bytes > max_message_bytes {
             bail!(
@@ -264,14 +268,14 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
                     reported = false;
                 }
                 let waited = unreachable_since.elapsed();
-                if let Some(limit) = actor.options.give_up_after {
-                    if waited >= limit {
-                        break Err(error.context(format!(
-                            "the learner at {} has been unreachable for {:.0} s (--connect-timeout)",
-                            actor.options.learner,
-                            waited.as_secs_f64()
-                        )));
-                    }
+                if let Some(limit) = actor.options.give_up_after
+                    && waited >= limit
+                {
+                    break Err(error.context(format!(
+                        "the learner at {} has been unreachable for {:.0} s (--connect-timeout)",
+                        actor.options.learner,
+                        waited.as_secs_f64()
+                    )));
                 }
                 let delay = backoff.next_delay();
                 if reported {
