@@ -696,3 +696,102 @@ fn rollout_loop(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn terms() -> RunTerms {
+        let scenario = ScenarioConfig::default();
+        RunTerms {
+            scenario_toml: scenario.to_toml(),
+            fragment_length: 200,
+            obs_dim: scenario.obs_dim() as u32,
+            action_dim: ACTION_DIM as u32,
+            obs_layout_version: OBS_LAYOUT_VERSION,
+            run_seed: 1,
+        }
+    }
+
+    #[test]
+    fn a_hostile_or_foreign_registration_reply_is_refused_before_anything_is_built() {
+        let limit = 64 << 20;
+        assert_eq!(terms().check(limit).unwrap().agents, 30);
+        let refused = |t: RunTerms, bytes: usize, needle: &str| {
+            let err = format!("{:#}", t.check(bytes).unwrap_err());
+            assert!(err.contains(needle), "{err} lacks {needle:?}");
+        };
+        refused(
+            RunTerms {
+                obs_layout_version: OBS_LAYOUT_VERSION + 1,
+                ..terms()
+            },
+            limit,
+            "observation layout",
+        );
+        for steps in [0, u32::MAX] {
+            refused(
+                RunTerms {
+                    fragment_length: steps,
+                    ..terms()
+                },
+                limit,
+                "fragments of",
+            );
+        }
+        refused(
+            RunTerms {
+                obs_dim: 90,
+                ..terms()
+            },
+            limit,
+            "dimensions",
+        );
+        let huge = ScenarioConfig {
+            agents: 1_000_000,
+            ..ScenarioConfig::default()
+        };
+        refused(
+            RunTerms {
+                scenario_toml: huge.to_toml(),
+                ..terms()
+            },
+            limit,
+            "scenario.agents",
+        );
+        refused(
+            RunTerms {
+                scenario_toml: "agents = \"many\"".into(),
+                ..terms()
+            },
+            limit,
+            "scenario",
+        );
+        // 200 steps × 30 agents × 91 values do not fit in 1 MB messages.
+        refused(terms(), 1 << 20, "--max-message-bytes");
+    }
+
+    #[test]
+    fn weights_of_another_protocol_or_format_are_refused() {
+        let ok = proto::PolicyWeights {
+            protocol_version: PROTOCOL_VERSION,
+            format: "safetensors".into(),
+            ..Default::default()
+        };
+        assert!(check_weights(&ok).is_ok());
+        assert!(
+            check_weights(&proto::PolicyWeights {
+                protocol_version: PROTOCOL_VERSION + 1,
+                ..ok.clone()
+            })
+            .is_err()
+        );
+        assert!(
+            check_weights(&proto::PolicyWeights {
+                format: "pickle".into(),
+                ..ok
+            })
+            .is_err()
+        );
+    }
+}

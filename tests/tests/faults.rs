@@ -38,7 +38,25 @@ fn an_actor_killed_mid_stream_leaves_the_learner_training_with_the_other() {
         &[&["--max-seconds", "300"], QUICK_RUN].concat(),
     );
     let mut doomed = start_actor(&endpoints, dir.path(), "doomed", &[]);
-    let survivor = start_actor(&endpoints, dir.path(), "survivor", &[]);
+    let started = wait_until(Duration::from_secs(120), || version(&endpoints) >= 2.0);
+    assert!(started, "no versions\n{}", learner.log_tail(30));
+    // A late joiner gets the current weights first.
+    let joined_at = version(&endpoints);
+    let survivor_metrics = format!("127.0.0.1:{}", free_port());
+    let survivor = start_actor(
+        &endpoints,
+        dir.path(),
+        "survivor",
+        &["--metrics-addr", &survivor_metrics],
+    );
+    let current = wait_until(Duration::from_secs(60), || {
+        metric_sum(&scrape(&survivor_metrics), "junction_actor_policy_version") >= joined_at
+    });
+    assert!(
+        current,
+        "the late actor did not start from v{joined_at}\n{}",
+        survivor.log_tail(20)
+    );
     let both = wait_until(Duration::from_secs(120), || {
         let m = scrape(&endpoints.metrics);
         metric_sum(&m, "junction_learner_connected_actors") == 2.0
