@@ -279,6 +279,8 @@ async fn thirty_two_connections_keep_memory_bounded_and_lose_no_agent_step() {
         "rss_peak_mib": peak_kib as f64 / 1024.0,
         "rss_first_half_peak_mib": first_half_peak as f64 / 1024.0,
         "rss_second_half_peak_mib": second_half_peak as f64 / 1024.0,
+        // One sample every 5 s (samples are taken every 250 ms).
+        "rss_mib_every_5s": samples.iter().step_by(20).map(|kib| kib / 1024).collect::<Vec<_>>(),
         "received_mb_per_s": received_bytes / pushed_s / 1e6,
         "accepted_agent_steps": accepted,
         "accepted_agent_steps_per_s": metric_sum(&before_stop, "junction_learner_agent_steps_accepted_total") / pushed_s,
