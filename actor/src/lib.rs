@@ -6,6 +6,7 @@ pub mod eval;
 pub mod grpc;
 pub mod lcf_column;
 pub mod metrics;
+pub mod reconnect;
 pub mod render;
 pub mod replay;
 pub mod rollout;

@@ -12,6 +12,7 @@ use tracing::Instrument;
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
 use junction_actor::{bench, eval, grpc};
+use junction_common::auth::Token;
 use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
 use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
@@ -72,9 +73,35 @@ struct RunArgs {
     /// Threads libtorch may use for inference.
     #[arg(long, default_value_t = 1)]
     torch_threads: i32,
-    /// Keep retrying the first connection to the learner for this many seconds.
-    #[arg(long, value_name = "SECONDS", default_value_t = 60.0)]
+    /// Give up (exit with an error) once the learner has been unreachable for this many
+    /// seconds, at start or after losing it; 0 = retry for ever. Meanwhile the actor retries
+    /// with exponential back-off and jitter.
+    #[arg(long, value_name = "SECONDS", default_value_t = 120.0)]
     connect_timeout: f64,
+    /// First wait between connection attempts; it doubles per failed attempt up to
+    /// --retry-max-delay (each wait drawn from [half, all] of it).
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
+    retry_initial_delay: f64,
+    /// Longest wait between connection attempts.
+    #[arg(long, value_name = "SECONDS", default_value_t = 5.0)]
+    retry_max_delay: f64,
+    /// File holding the learner's shared token (or set JUNCTION_AUTH_TOKEN); sent with every
+    /// RPC.
+    #[arg(long, value_name = "FILE")]
+    auth_token_file: Option<PathBuf>,
+    /// PEM CA bundle to verify the learner's certificate (https:// URLs; default: the system's
+    /// trust store).
+    #[arg(long, value_name = "FILE")]
+    tls_ca: Option<PathBuf>,
+    /// Client certificate (PEM) for a learner that requires one (server.tls_client_ca).
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// Private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Name to verify the learner's certificate against [default: the URL's host].
+    #[arg(long, value_name = "NAME")]
+    tls_domain: Option<String>,
     /// Largest gRPC message sent or accepted, in bytes.
     #[arg(long, default_value_t = 64 << 20)]
     max_message_bytes: usize,
@@ -334,6 +361,12 @@ fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A duration flag: finite and not negative.
+fn seconds(value: f64, flag: &str) -> anyhow::Result<Duration> {
+    Duration::try_from_secs_f64(value)
+        .map_err(|_| anyhow::anyhow!("{flag} {value} is not a number of seconds"))
+}
+
 fn run_actor(args: RunArgs) -> anyhow::Result<()> {
     tch::set_num_threads(args.torch_threads.max(1));
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -369,8 +402,19 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
                 .unwrap_or_else(|| format!("{}/{}", hostname.trim(), std::process::id())),
             scenes: args.scenes as usize,
             seed: args.seed,
-            connect_timeout: Duration::from_secs_f64(args.connect_timeout.max(0.0)),
+            give_up_after: (args.connect_timeout > 0.0)
+                .then(|| seconds(args.connect_timeout, "--connect-timeout"))
+                .transpose()?,
+            retry_initial: seconds(args.retry_initial_delay, "--retry-initial-delay")?,
+            retry_max: seconds(args.retry_max_delay, "--retry-max-delay")?,
             max_message_bytes: args.max_message_bytes,
+            tls: grpc::TlsOptions {
+                ca: args.tls_ca,
+                cert: args.tls_cert,
+                key: args.tls_key,
+                domain: args.tls_domain,
+            },
+            token: Token::load(args.auth_token_file.as_deref())?,
         };
         let span = tracing::info_span!(
             "actor",

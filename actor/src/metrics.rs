@@ -14,6 +14,9 @@ pub struct ActorMetrics {
     pub inference_seconds: Counter,
     pub simulation_seconds: Counter,
     pub scene_agents: IntGauge,
+    pub connected: IntGauge,
+    pub reconnects: IntCounter,
+    pub fragments_unconfirmed: IntCounter,
 }
 
 impl ActorMetrics {
@@ -39,6 +42,11 @@ impl ActorMetrics {
             "Learning-agent slots per scene (fewer than the scenario's during a curriculum).",
         )?;
         registry.register(Box::new(scene_agents.clone()))?;
+        let connected = IntGauge::new(
+            names::ACTOR_CONNECTED,
+            "1 while registered with the learner and streaming, 0 while (re)connecting.",
+        )?;
+        registry.register(Box::new(connected.clone()))?;
         Ok(ActorMetrics {
             env_steps: counter(names::ACTOR_ENV_STEPS, "Scene steps simulated.")?,
             agent_steps: counter(names::ACTOR_AGENT_STEPS, "Agent-steps simulated.")?,
@@ -60,6 +68,15 @@ impl ActorMetrics {
                 "Time spent stepping scenes.",
             )?,
             scene_agents,
+            connected,
+            reconnects: counter(
+                names::ACTOR_RECONNECTS,
+                "Times the actor registered again after losing the learner.",
+            )?,
+            fragments_unconfirmed: counter(
+                names::ACTOR_FRAGMENTS_UNCONFIRMED,
+                "Fragments sent on a rollout stream that broke before the learner confirmed it (the learner counts those it accepted).",
+            )?,
             registry,
         })
     }

@@ -155,6 +155,11 @@ impl RolloutWorker {
         self.policy_version
     }
 
+    /// The id new fragments carry (after registering again with a restarted learner).
+    pub fn set_actor_id(&mut self, actor_id: String) {
+        self.actor_id = actor_id;
+    }
+
     /// Switches to new weights; takes effect from the next fragment on.
     pub fn set_policy(&mut self, policy: GaussianPolicy, version: u64) {
         self.policy = policy;

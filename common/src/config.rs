@@ -385,6 +385,27 @@ pub struct ServerSection {
     pub addr: String,
     pub metrics_addr: String,
     pub max_message_bytes: usize,
+    pub max_concurrent_streams: u32,
+    pub max_rollout_streams: usize,
+    pub keepalive_interval_s: f64,
+    pub keepalive_timeout_s: f64,
+    pub tls_cert: String,
+    pub tls_key: String,
+    pub tls_client_ca: String,
+    pub auth_token_file: String,
+}
+
+/// Ceilings that keep a configuration (or a scenario a learner sends to actors) from asking
+/// for absurd allocations; far above any real run.
+pub const MAX_LIDAR_BEAMS: usize = 4096;
+pub const MAX_HIDDEN_WIDTH: i64 = 65_536;
+pub const MAX_HIDDEN_LAYERS: usize = 16;
+
+impl ServerSection {
+    /// A path key's value, `None` when empty (the feature is off).
+    pub fn path(value: &str) -> Option<&Path> {
+        (!value.trim().is_empty()).then(|| Path::new(value))
+    }
 }
 
 impl Default for RunConfig {
@@ -532,7 +553,86 @@ impl RunConfig {
             problems.push("run.progress_interval_s must be > 0".to_string());
         }
         problems.extend(self.curriculum.problems());
+        problems.extend(self.size_problems());
+        problems.extend(self.server.problems());
         join_problems(problems)
+    }
+
+    /// Sizes beyond reason, and fragments too big for the message limit (actors could never
+    /// deliver them).
+    fn size_problems(&self) -> Vec<String> {
+        use crate::fragment::{MAX_AGENTS, MAX_STEPS};
+        let mut problems = Vec::new();
+        let p = &self.ppo;
+        if p.hidden.len() > MAX_HIDDEN_LAYERS || p.hidden.iter().any(|&h| h > MAX_HIDDEN_WIDTH) {
+            problems.push(format!(
+                "ppo.hidden may list at most {MAX_HIDDEN_LAYERS} layers of at most {MAX_HIDDEN_WIDTH}"
+            ));
+        }
+        if self.rollout.fragment_length > MAX_STEPS {
+            problems.push(format!("rollout.fragment_length must be <= {MAX_STEPS}"));
+        }
+        if self.learner.ingest_queue_fragments > 65_536 {
+            problems.push("learner.ingest_queue_fragments must be <= 65536".to_string());
+        }
+        let agents = self.scenario.agent_count();
+        if agents > MAX_AGENTS
+            || self.scenario.sensors.lidar_beams > MAX_LIDAR_BEAMS
+            || self.rollout.fragment_length > MAX_STEPS
+        {
+            // The estimate below would be meaningless (and could overflow).
+            return problems;
+        }
+        let bytes = self.fragment_bytes_estimate();
+        if bytes > self.server.max_message_bytes {
+            problems.push(format!(
+                "a fragment of rollout.fragment_length = {} steps x {agents} agents is about {bytes} bytes, more than server.max_message_bytes = {}",
+                self.rollout.fragment_length, self.server.max_message_bytes
+            ));
+        }
+        problems
+    }
+
+    /// Encoded size of one fragment of this run, without neighbour lists (a lower bound).
+    pub fn fragment_bytes_estimate(&self) -> usize {
+        let cells = self.rollout.fragment_length * self.scenario.agent_count();
+        let obs_dim = self.scenario.obs_dim();
+        let floats_per_cell = obs_dim + crate::spec::ACTION_DIM + 3 + crate::lcf::FEATURES;
+        // f32 values, two flag bytes and one neighbour offset per cell, the bootstrap rows.
+        cells * (floats_per_cell * 4 + 2 + 4) + self.scenario.agent_count() * obs_dim * 4
+    }
+}
+
+impl ServerSection {
+    fn problems(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        if self.max_message_bytes < 1 << 16 {
+            problems.push("server.max_message_bytes must be >= 65536".to_string());
+        }
+        if self.max_concurrent_streams < 2 || self.max_rollout_streams == 0 {
+            problems.push(
+                "server.max_concurrent_streams must be >= 2 (an actor opens two streams) and server.max_rollout_streams > 0"
+                    .to_string(),
+            );
+        }
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.keepalive_interval_s) || !positive(self.keepalive_timeout_s) {
+            problems.push(
+                "server.keepalive_interval_s and server.keepalive_timeout_s must be > 0"
+                    .to_string(),
+            );
+        }
+        let (cert, key) = (Self::path(&self.tls_cert), Self::path(&self.tls_key));
+        if cert.is_some() != key.is_some() {
+            problems.push("server.tls_cert and server.tls_key must be set together".to_string());
+        }
+        if Self::path(&self.tls_client_ca).is_some() && cert.is_none() {
+            problems.push(
+                "server.tls_client_ca (client certificates) needs server.tls_cert and server.tls_key"
+                    .to_string(),
+            );
+        }
+        problems
     }
 }
 
@@ -629,8 +729,11 @@ impl ScenarioConfig {
 
     pub fn validate(&self) -> Result<(), ConfigError> {
         let mut problems = Vec::new();
-        if self.agents == 0 {
-            problems.push("scenario.agents must be > 0".to_string());
+        if self.agents == 0 || self.agents > crate::fragment::MAX_AGENTS {
+            problems.push(format!(
+                "scenario.agents must be in 1..={}",
+                crate::fragment::MAX_AGENTS
+            ));
         }
         if self.horizon == 0 || self.agent_horizon == 0 {
             problems.push("scenario.horizon and scenario.agent_horizon must be > 0".to_string());
@@ -721,8 +824,12 @@ impl ScenarioConfig {
         if !(s.initial_speed >= 0.0) {
             problems.push("scenario.spawn.initial_speed must be >= 0".into());
         }
-        if self.sensors.lidar_beams == 0 || !(self.sensors.lidar_range > 0.0) {
-            problems.push("scenario.sensors needs lidar_beams > 0 and lidar_range > 0".into());
+        if !(1..=MAX_LIDAR_BEAMS).contains(&self.sensors.lidar_beams)
+            || !(self.sensors.lidar_range > 0.0)
+        {
+            problems.push(format!(
+                "scenario.sensors needs lidar_beams in 1..={MAX_LIDAR_BEAMS} and lidar_range > 0"
+            ));
         }
         let r = &self.reward;
         let numbers = [
@@ -926,6 +1033,60 @@ mod tests {
         }
         let one = RunConfig::load(None, &["curriculum.stages=[1.0]".into()]).unwrap();
         assert_eq!(one.curriculum.stages, vec![1.0]);
+    }
+
+    #[test]
+    fn absurd_sizes_and_half_configured_security_are_refused() {
+        for bad in [
+            "scenario.agents=1000000",
+            "scenario.sensors.lidar_beams=100000",
+            "ppo.hidden=[100000]",
+            "ppo.hidden=[8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8]",
+            "rollout.fragment_length=1000000",
+            "learner.ingest_queue_fragments=100000000",
+            "server.max_message_bytes=1000",
+            "server.max_rollout_streams=0",
+            "server.max_concurrent_streams=1",
+            "server.keepalive_interval_s=0",
+            "server.keepalive_timeout_s=nan",
+            "server.tls_cert=\"cert.pem\"",
+            "server.tls_client_ca=\"ca.pem\"",
+        ] {
+            let err = RunConfig::load(None, &[bad.into()]);
+            assert!(
+                matches!(
+                    err,
+                    Err(ConfigError::Invalid(_)) | Err(ConfigError::Parse { .. })
+                ),
+                "{bad} was accepted: {err:?}"
+            );
+        }
+        // A fragment that cannot fit the message limit: 2000 steps x 30 agents x 91 values.
+        let err = RunConfig::load(
+            None,
+            &[
+                "rollout.fragment_length=2000".into(),
+                "server.max_message_bytes=4000000".into(),
+            ],
+        )
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("server.max_message_bytes"),
+            "{err}"
+        );
+        let tls = RunConfig::load(
+            None,
+            &[
+                "server.tls_cert=\"c.pem\"".into(),
+                "server.tls_key=\"k.pem\"".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(
+            ServerSection::path(&tls.server.tls_cert),
+            Some(Path::new("c.pem"))
+        );
+        assert_eq!(ServerSection::path(&tls.server.auth_token_file), None);
     }
 
     #[test]

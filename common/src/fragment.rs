@@ -19,6 +19,8 @@ pub const MAX_STEPS: usize = 100_000;
 pub const MAX_AGENTS: usize = 10_000;
 pub const MAX_OBS_DIM: usize = 65_536;
 pub const MAX_ACTION_DIM: usize = 64;
+/// Longest actor id, actor name or scenario name accepted from a peer, in bytes.
+pub const MAX_NAME_BYTES: usize = 256;
 
 /// How an agent's episode ended (paper §4.2, CoPO's metrics).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -204,6 +206,14 @@ impl RolloutFragment {
     /// Checks everything a learner relies on; `expected_dims` pins (obs_dim, action_dim).
     pub fn validate(&self, expected_dims: Option<(usize, usize)>) -> Result<(), FragmentError> {
         let shape = |msg: String| Err(FragmentError::Shape(msg));
+        for (field, text) in [("actor_id", &self.actor_id), ("scenario", &self.scenario)] {
+            if text.len() > MAX_NAME_BYTES {
+                return shape(format!(
+                    "{field} is {} bytes long (at most {MAX_NAME_BYTES})",
+                    text.len()
+                ));
+            }
+        }
         if self.steps == 0 || self.steps > MAX_STEPS {
             return shape(format!("steps = {} (must be 1..={MAX_STEPS})", self.steps));
         }

@@ -3,6 +3,7 @@
 //! with their confidence intervals. Both `actor` and `learner` depend on this crate and never
 //! on each other.
 
+pub mod auth;
 pub mod confidence;
 pub mod config;
 pub mod evaluation;

@@ -291,9 +291,13 @@ impl GaussianPolicy {
         let hidden_text: String = decoded.meta("hidden")?;
         let hidden = hidden_text
             .split(',')
-            .map(|h| h.parse::<i64>().ok().filter(|&h| h > 0 && h <= 1 << 16))
+            .map(|h| {
+                h.parse::<i64>()
+                    .ok()
+                    .filter(|&h| h > 0 && h <= crate::config::MAX_HIDDEN_WIDTH)
+            })
             .collect::<Option<Vec<i64>>>()
-            .filter(|h| !h.is_empty())
+            .filter(|h| !h.is_empty() && h.len() <= crate::config::MAX_HIDDEN_LAYERS)
             .ok_or_else(|| WeightsError::Metadata {
                 key: "hidden".into(),
             })?;
@@ -303,6 +307,17 @@ impl GaussianPolicy {
         {
             return Err(WeightsError::Metadata {
                 key: "obs_dim/action_dim".into(),
+            });
+        }
+        // The network is built (allocated) only once the blob is known to hold that many
+        // values: metadata alone must not be able to ask for gigabytes.
+        let needed = parameter_count(obs_dim, action_dim, &hidden);
+        if needed > decoded.total_values() {
+            return Err(WeightsError::Metadata {
+                key: format!(
+                    "hidden (describes {needed} values, the blob holds {})",
+                    decoded.total_values()
+                ),
             });
         }
         let policy = GaussianPolicy::new(device, obs_dim, action_dim, &hidden, 0.0);
@@ -320,6 +335,19 @@ impl GaussianPolicy {
         weights::load_var_store(&self.vs, &mut decoded)?;
         Ok(meta)
     }
+}
+
+/// Values a policy of these sizes stores: the MLP's weights and biases, the log-std and the
+/// normaliser (mean, variance, count). Inputs are bounded by the callers' checks, so no
+/// overflow.
+fn parameter_count(obs_dim: i64, action_dim: i64, hidden: &[i64]) -> i64 {
+    let mut width = obs_dim;
+    let mut total = 0;
+    for &size in hidden.iter().chain(std::iter::once(&action_dim)) {
+        total += width * size + size;
+        width = size;
+    }
+    total + action_dim + 2 * obs_dim + 1
 }
 
 /// log N(actions | mean, exp(log_std)), summed over action dimensions (in the inputs'
@@ -366,6 +394,63 @@ mod tests {
         assert!((lp - expected).abs() < 1e-5, "{lp} vs {expected}");
         let h = f64::try_from(gaussian_entropy(&log_std).sum(Kind::Float)).unwrap();
         assert!((h - (ln2pi + 1.0 + (2.0f64).ln())).abs() < 1e-5);
+    }
+
+    /// A blob with `metadata` and one small tensor.
+    fn blob_with_metadata(metadata: &[(&str, &str)]) -> Vec<u8> {
+        let metadata = metadata
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        let x = Tensor::from_slice(&[1.0f32; 4]);
+        weights::encode(&[("x".into(), &x)], metadata).unwrap()
+    }
+
+    #[test]
+    fn hostile_metadata_is_refused_before_anything_is_allocated() {
+        let base = [
+            ("version", "1"),
+            ("obs_layout_version", "1"),
+            ("obs_dim", "65536"),
+            ("action_dim", "2"),
+        ];
+        // 16 layers of 65536 would be ~69 G values: refused from the blob's 4 values alone.
+        let huge = vec!["65536"; 16].join(",");
+        for hidden in [huge.as_str(), "65536,65536", "8"] {
+            let mut metadata = base.to_vec();
+            metadata.push(("hidden", hidden));
+            let err = GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu)
+                .unwrap_err();
+            assert!(
+                matches!(err, WeightsError::Metadata { .. }),
+                "{hidden}: {err}"
+            );
+        }
+        for (key, value) in [
+            ("hidden", "0"),
+            ("hidden", "-3"),
+            ("hidden", ""),
+            ("hidden", "65537"),
+            ("obs_dim", "0"),
+            ("action_dim", "65"),
+            ("version", "not a number"),
+        ] {
+            let mut metadata: Vec<(&str, &str)> = base.to_vec();
+            metadata.retain(|(k, _)| *k != key);
+            metadata.push((key, value));
+            if key != "hidden" {
+                metadata.push(("hidden", "8"));
+            }
+            assert!(
+                GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu).is_err(),
+                "{key} = {value:?} was accepted"
+            );
+        }
+        // Too many layers, even small ones.
+        let mut metadata = base.to_vec();
+        let many = vec!["1"; crate::config::MAX_HIDDEN_LAYERS + 1].join(",");
+        metadata.push(("hidden", &many));
+        assert!(GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu).is_err());
     }
 
     #[test]

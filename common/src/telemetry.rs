@@ -17,6 +17,9 @@ pub mod names {
     pub const LEARNER_FRAGMENTS: &str = "junction_learner_fragments_total";
     pub const LEARNER_FRAGMENTS_REJECTED: &str = "junction_learner_fragments_rejected_total";
     pub const LEARNER_FRAGMENTS_DROPPED: &str = "junction_learner_fragments_dropped_total";
+    pub const LEARNER_AGENT_STEPS_ACCEPTED: &str = "junction_learner_agent_steps_accepted_total";
+    pub const LEARNER_AGENT_STEPS_DROPPED: &str = "junction_learner_agent_steps_dropped_total";
+    pub const LEARNER_REQUESTS_REFUSED: &str = "junction_learner_requests_refused_total";
     pub const LEARNER_SAMPLES_TRAINED: &str = "junction_learner_samples_trained_total";
     pub const LEARNER_UPDATES: &str = "junction_learner_updates_total";
     pub const LEARNER_UPDATE_SECONDS: &str = "junction_learner_update_duration_seconds";
@@ -62,6 +65,9 @@ pub mod names {
     pub const ACTOR_INFERENCE_SECONDS: &str = "junction_actor_inference_seconds_total";
     pub const ACTOR_SIMULATION_SECONDS: &str = "junction_actor_simulation_seconds_total";
     pub const ACTOR_SCENE_AGENTS: &str = "junction_actor_scene_agents";
+    pub const ACTOR_CONNECTED: &str = "junction_actor_connected";
+    pub const ACTOR_RECONNECTS: &str = "junction_actor_reconnects_total";
+    pub const ACTOR_FRAGMENTS_UNCONFIRMED: &str = "junction_actor_fragments_unconfirmed_total";
 }
 
 /// `--log-format` of both binaries (parsed by clap through `FromStr`).

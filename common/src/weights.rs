@@ -104,10 +104,25 @@ impl Decoded {
             if values.iter().any(|v| !v.is_finite()) {
                 return Err(WeightsError::NonFinite { name });
             }
-            let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
-            tensors.insert(name, Tensor::from_slice(&values).reshape(&shape));
+            let shape = view
+                .shape()
+                .iter()
+                .map(|&d| i64::try_from(d))
+                .collect::<Result<Vec<i64>, _>>()
+                .map_err(|_| WeightsError::Format(format!("tensor {name:?} has a huge shape")))?;
+            let tensor = Tensor::from_slice(&values).f_reshape(&shape)?;
+            tensors.insert(name, tensor);
         }
         Ok(Decoded { tensors, metadata })
+    }
+
+    /// Values held over all tensors (what a blob can fill, whatever its metadata claims).
+    pub fn total_values(&self) -> i64 {
+        self.tensors
+            .values()
+            .map(Tensor::numel)
+            .map(|n| n as i64)
+            .sum()
     }
 
     /// The tensor `name`, checked against `expected` shape.
@@ -204,5 +219,47 @@ mod tests {
         )
         .unwrap();
         assert!(Decoded::decode(&ok[..ok.len() - 3]).is_err());
+    }
+
+    /// A safetensors header written by hand: `json` then `data`.
+    fn raw_blob(json: &str, data: &[u8]) -> Vec<u8> {
+        let mut bytes = (json.len() as u64).to_le_bytes().to_vec();
+        bytes.extend_from_slice(json.as_bytes());
+        bytes.extend_from_slice(data);
+        bytes
+    }
+
+    #[test]
+    fn hostile_headers_are_errors_not_panics() {
+        // A zero-sized tensor with a dimension beyond i64: the product is 0, so the data
+        // length checks out, but no tensor of that shape can exist.
+        let huge = raw_blob(
+            r#"{"x":{"dtype":"F32","shape":[0,18446744073709551615],"data_offsets":[0,0]}}"#,
+            &[],
+        );
+        assert!(Decoded::decode(&huge).is_err());
+        // Data offsets past the end, other dtypes, a header longer than the blob.
+        let past = raw_blob(
+            r#"{"x":{"dtype":"F32","shape":[2],"data_offsets":[0,8]}}"#,
+            &[0; 4],
+        );
+        assert!(Decoded::decode(&past).is_err());
+        let ints = raw_blob(
+            r#"{"x":{"dtype":"I32","shape":[1],"data_offsets":[0,4]}}"#,
+            &[0; 4],
+        );
+        assert!(matches!(
+            Decoded::decode(&ints),
+            Err(WeightsError::Dtype { .. })
+        ));
+        let mut long_header = raw_blob("{}", &[]);
+        long_header[..8].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(Decoded::decode(&long_header).is_err());
+        // Metadata that is not our JSON object.
+        let bad_meta = raw_blob(r#"{"__metadata__":{"junction":"[1,2"}}"#, &[]);
+        assert!(matches!(
+            Decoded::decode(&bad_meta),
+            Err(WeightsError::Metadata { .. })
+        ));
     }
 }

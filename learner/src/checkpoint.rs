@@ -17,6 +17,11 @@ const STATE_FILE: &str = "learner.safetensors";
 const META_FILE: &str = "meta.json";
 const PREFIX: &str = "ckpt-";
 const TMP_PREFIX: &str = ".tmp-";
+/// Layout of a checkpoint directory; readers refuse newer ones.
+pub const FORMAT_VERSION: u32 = 1;
+/// Test hook (fault tests only): milliseconds to stall between a checkpoint's first file and
+/// the rest, so a test can kill the learner in the middle of a write.
+pub const STALL_ENV: &str = "JUNCTION_TEST_CHECKPOINT_STALL_MS";
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
@@ -31,6 +36,8 @@ pub enum CheckpointError {
         path: PathBuf,
         source: serde_json::Error,
     },
+    #[error("checkpoint {path} has format version {got}; this build reads up to {FORMAT_VERSION}")]
+    Format { path: PathBuf, got: u32 },
 }
 
 fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + use<> {
@@ -55,6 +62,16 @@ pub struct CheckpointMeta {
     pub created_unix_s: u64,
     /// The effective run configuration, as TOML.
     pub config: String,
+    /// Actor ids handed out so far, so a resumed learner does not hand out an id (and with
+    /// it a scene seed) twice. Absent in older checkpoints.
+    #[serde(default)]
+    pub actors_registered: u64,
+    #[serde(default = "first_format")]
+    pub format_version: u32,
+}
+
+fn first_format() -> u32 {
+    1
 }
 
 pub struct Checkpoint {
@@ -67,6 +84,10 @@ pub struct Checkpoint {
 pub struct Checkpointer {
     dir: PathBuf,
     keep: usize,
+    /// The version this process wrote last: only that one may be skipped as already on disk
+    /// (a directory of the same version from before a restart is another policy).
+    last_written: std::cell::Cell<Option<u64>>,
+    stall: Option<std::time::Duration>,
 }
 
 impl Checkpointer {
@@ -79,9 +100,15 @@ impl Checkpointer {
                 fs::remove_dir_all(&path).map_err(io("remove", &path))?;
             }
         }
+        let stall = std::env::var(STALL_ENV)
+            .ok()
+            .and_then(|ms| ms.parse().ok())
+            .map(std::time::Duration::from_millis);
         Ok(Checkpointer {
             dir,
             keep: keep.max(1),
+            last_written: std::cell::Cell::new(None),
+            stall,
         })
     }
 
@@ -97,7 +124,7 @@ impl Checkpointer {
         state: &[u8],
     ) -> Result<PathBuf, CheckpointError> {
         let final_path = self.dir.join(format!("{PREFIX}{:010}", meta.version));
-        if final_path.join(META_FILE).exists() {
+        if self.last_written.get() == Some(meta.version) && final_path.join(META_FILE).exists() {
             // This version is already on disk (no update since): nothing new to record.
             return Ok(final_path);
         }
@@ -121,14 +148,23 @@ impl Checkpointer {
             let mut file = File::create(&path).map_err(io("create", &path))?;
             file.write_all(bytes).map_err(io("write", &path))?;
             file.sync_all().map_err(io("fsync", &path))?;
+            if let (POLICY_FILE, Some(stall)) = (name, self.stall) {
+                tracing::warn!(
+                    ms = stall.as_millis() as u64,
+                    "{STALL_ENV}: stalling mid-checkpoint"
+                );
+                std::thread::sleep(stall);
+            }
         }
         sync_dir(&tmp)?;
         if final_path.exists() {
-            // An incomplete directory of the same name (no meta.json): replace it.
+            // An incomplete directory of the same name, or one a run before a restart wrote
+            // for the same version: this process's policy replaces it.
             fs::remove_dir_all(&final_path).map_err(io("remove", &final_path))?;
         }
         fs::rename(&tmp, &final_path).map_err(io("rename", &tmp))?;
         sync_dir(&self.dir)?;
+        self.last_written.set(Some(meta.version));
         self.prune()?;
         Ok(final_path)
     }
@@ -145,18 +181,43 @@ impl Checkpointer {
 
     /// The newest checkpoint that reads back completely; damaged ones are skipped with a warning.
     pub fn latest(dir: &Path) -> Result<Option<Checkpoint>, CheckpointError> {
-        if !dir.exists() {
-            return Ok(None);
-        }
-        let mut versions = list(dir)?;
-        versions.sort();
-        for (_, path) in versions.into_iter().rev() {
+        for path in Self::newest_first(dir)? {
             match read(&path) {
                 Ok(checkpoint) => return Ok(Some(checkpoint)),
                 Err(e) => tracing::warn!(error = %e, "skipping unreadable checkpoint"),
             }
         }
         Ok(None)
+    }
+
+    /// Complete checkpoint directories (their meta.json written last is present), newest
+    /// first: what a resume tries in turn.
+    pub fn newest_first(dir: &Path) -> Result<Vec<PathBuf>, CheckpointError> {
+        if !dir.exists() {
+            return Ok(Vec::new());
+        }
+        let mut versions = list(dir)?;
+        versions.sort();
+        Ok(versions.into_iter().rev().map(|(_, path)| path).collect())
+    }
+
+    pub fn read(path: &Path) -> Result<Checkpoint, CheckpointError> {
+        read(path)
+    }
+
+    /// Renames a checkpoint that cannot be restored to `damaged-<name>`, out of the way of
+    /// resumes and pruning but kept for inspection.
+    pub fn set_aside(path: &Path) -> Result<PathBuf, CheckpointError> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let target = path.with_file_name(format!("damaged-{name}"));
+        if target.exists() {
+            fs::remove_dir_all(&target).map_err(io("remove", &target))?;
+        }
+        fs::rename(path, &target).map_err(io("rename", path))?;
+        Ok(target)
     }
 }
 
@@ -166,11 +227,17 @@ fn read(path: &Path) -> Result<Checkpoint, CheckpointError> {
         fs::read(&file).map_err(io("read", &file))
     };
     let meta_path = path.join(META_FILE);
-    let meta =
+    let meta: CheckpointMeta =
         serde_json::from_slice(&read_file(META_FILE)?).map_err(|source| CheckpointError::Meta {
             path: meta_path,
             source,
         })?;
+    if meta.format_version > FORMAT_VERSION {
+        return Err(CheckpointError::Format {
+            path: path.to_path_buf(),
+            got: meta.format_version,
+        });
+    }
     Ok(Checkpoint {
         path: path.to_path_buf(),
         meta,
@@ -219,6 +286,8 @@ mod tests {
             obs_layout_version: 1,
             created_unix_s: 0,
             config: "[run]\nseed = 1\n".into(),
+            actors_registered: 0,
+            format_version: FORMAT_VERSION,
         }
     }
 
@@ -241,6 +310,69 @@ mod tests {
         let latest = Checkpointer::latest(&dir).unwrap().unwrap();
         assert_eq!(latest.meta, meta(4));
         assert_eq!((latest.policy, latest.state), (vec![4u8; 3], vec![0xAA, 4]));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_version_written_before_a_restart_is_replaced_not_kept() {
+        let dir = temp_dir("restart");
+        let before = Checkpointer::new(dir.clone(), 3).unwrap();
+        before.write(&meta(5), b"old lineage", b"s").unwrap();
+        // This process wrote version 5: writing it again keeps it (no update since).
+        before.write(&meta(5), b"ignored", b"s").unwrap();
+        assert_eq!(
+            Checkpointer::latest(&dir).unwrap().unwrap().policy,
+            b"old lineage"
+        );
+        // A learner restarted from an older checkpoint reaches version 5 again with other
+        // weights: its checkpoint must win.
+        let after = Checkpointer::new(dir.clone(), 3).unwrap();
+        after.write(&meta(5), b"new lineage", b"s").unwrap();
+        assert_eq!(
+            Checkpointer::latest(&dir).unwrap().unwrap().policy,
+            b"new lineage"
+        );
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn newer_formats_are_refused_and_damaged_checkpoints_set_aside() {
+        let dir = temp_dir("format");
+        let c = Checkpointer::new(dir.clone(), 5).unwrap();
+        c.write(&meta(1), b"p1", b"s1").unwrap();
+        let mut future = meta(2);
+        future.format_version = FORMAT_VERSION + 1;
+        let path = c.write(&future, b"p2", b"s2").unwrap();
+        let err = Checkpointer::read(&path).err().unwrap();
+        assert!(matches!(err, CheckpointError::Format { .. }), "{err}");
+        assert_eq!(Checkpointer::latest(&dir).unwrap().unwrap().meta.version, 1);
+        // Older checkpoints (no format_version, no actors_registered) still read.
+        let old_meta = fs::read_to_string(dir.join("ckpt-0000000001").join(META_FILE)).unwrap();
+        let mut value: serde_json::Value = serde_json::from_str(&old_meta).unwrap();
+        value.as_object_mut().unwrap().remove("format_version");
+        value.as_object_mut().unwrap().remove("actors_registered");
+        fs::write(
+            dir.join("ckpt-0000000001").join(META_FILE),
+            value.to_string(),
+        )
+        .unwrap();
+        assert_eq!(
+            Checkpointer::latest(&dir)
+                .unwrap()
+                .unwrap()
+                .meta
+                .format_version,
+            1
+        );
+        // Setting one aside takes it out of resumes and pruning.
+        let aside = Checkpointer::set_aside(&path).unwrap();
+        assert!(
+            aside.ends_with("damaged-ckpt-0000000002"),
+            "{}",
+            aside.display()
+        );
+        let left: Vec<PathBuf> = Checkpointer::newest_first(&dir).unwrap();
+        assert_eq!(left, vec![dir.join("ckpt-0000000001")]);
         fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -8,6 +8,7 @@ pub mod metrics;
 pub mod optim;
 pub mod progress;
 pub mod report;
+pub mod security;
 pub mod server;
 pub mod stats;
 pub mod trainer;

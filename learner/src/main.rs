@@ -10,6 +10,7 @@ use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::TcpListenerStream;
+use tonic::service::interceptor::InterceptedService;
 
 use junction_common::config::{DEFAULT_TOML, DeviceChoice, Layer, RunConfig};
 use junction_common::proto::learner_server::LearnerServer;
@@ -20,6 +21,7 @@ use junction_learner::algo;
 use junction_learner::checkpoint::Checkpointer;
 use junction_learner::metrics::LearnerMetrics;
 use junction_learner::report::{self, ReportOptions};
+use junction_learner::security::{self, TokenCheck};
 use junction_learner::server::{LearnerService, Shared};
 use junction_learner::trainer::{Progress, Trainer, weights_message};
 
@@ -261,13 +263,14 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     };
     let checkpoint_dir = run_dir.join("checkpoints");
     let resume = if args.resume.is_some() {
-        let checkpoint = Checkpointer::latest(&checkpoint_dir)?.with_context(|| {
-            format!(
+        let candidates = Checkpointer::newest_first(&checkpoint_dir)?;
+        if candidates.is_empty() {
+            bail!(
                 "--resume: no complete checkpoint in {}",
                 checkpoint_dir.display()
-            )
-        })?;
-        Some(checkpoint)
+            );
+        }
+        Some(candidates)
     } else {
         if Checkpointer::latest(&checkpoint_dir)?.is_some() {
             bail!(
@@ -311,34 +314,9 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let mut algorithm = algo::build(&config, device);
-    let progress = match &resume {
-        Some(checkpoint) => {
-            if checkpoint.meta.algorithm != algorithm.name() {
-                bail!(
-                    "checkpoint {} was trained by {}, the configuration asks for {} (learner.algo)",
-                    checkpoint.path.display(),
-                    checkpoint.meta.algorithm,
-                    algorithm.name()
-                );
-            }
-            if checkpoint.meta.obs_layout_version != OBS_LAYOUT_VERSION {
-                bail!(
-                    "checkpoint {} uses observation layout {}, this build uses {}",
-                    checkpoint.path.display(),
-                    checkpoint.meta.obs_layout_version,
-                    OBS_LAYOUT_VERSION
-                );
-            }
-            let mut state = junction_common::weights::Decoded::decode(&checkpoint.state)
-                .with_context(|| format!("reading {}", checkpoint.path.display()))?;
-            algorithm
-                .restore(&checkpoint.policy, &mut state)
-                .with_context(|| format!("restoring from {}", checkpoint.path.display()))?;
-            tracing::info!(path = %checkpoint.path.display(), version = checkpoint.meta.version, "resumed");
-            Progress::from(&checkpoint.meta)
-        }
-        None => Progress::default(),
+    let (algorithm, progress, actors_registered) = match &resume {
+        Some(candidates) => restore_newest(candidates, &config, device)?,
+        None => (algo::build(&config, device), Progress::default(), 0),
     };
 
     // The stage follows from the restored agent-steps: a resumed run continues in its stage.
@@ -354,13 +332,19 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     metrics.record_stage(stage);
     let registry = metrics.registry.clone();
     let initial = weights_message(algorithm.as_ref(), progress.version, stage.agents, false)?;
+    let refused = metrics.requests_refused.clone();
     let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
+    shared.continue_actor_ids(actors_registered);
+    let tls = security::server_tls(&config.server).context("[server] TLS settings")?;
+    let token = security::server_token(&config.server).context("[server] auth token")?;
     let (queue_tx, queue_rx) = mpsc::channel(config.learner.ingest_queue_fragments);
 
     let grpc_listener = bind(&config.server.addr, "gRPC").await?;
     let metrics_listener = bind(&config.server.metrics_addr, "metrics").await?;
     let grpc_addr = grpc_listener.local_addr()?;
     let metrics_addr = metrics_listener.local_addr()?;
+    // Clears what an interrupted checkpoint write left behind before anyone is told we serve.
+    let checkpointer = Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?;
     write_endpoints(&run_dir, grpc_addr, metrics_addr)?;
     tracing::info!(
         grpc = %grpc_addr,
@@ -368,25 +352,44 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         run_dir = %run_dir.display(),
         device = ?device,
         scenario = %config.scenario.name,
+        tls = tls.is_some(),
+        token = token.is_some(),
         "learner serving"
     );
+    if !grpc_addr.ip().is_loopback() && (tls.is_none() || token.is_none()) {
+        tracing::warn!(
+            grpc = %grpc_addr,
+            "the gRPC port is reachable beyond this host without TLS and a token; set server.tls_cert/tls_key and server.auth_token_file (or JUNCTION_AUTH_TOKEN) unless the network is trusted"
+        );
+    }
 
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
     let wait_for_shutdown = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|stop| *stop).await;
     };
-    let max_bytes = config.server.max_message_bytes;
+    let server_config = &config.server;
+    let max_bytes = server_config.max_message_bytes;
     let service = LearnerServer::new(LearnerService::new(Arc::clone(&shared), queue_tx))
         .max_decoding_message_size(max_bytes)
         .max_encoding_message_size(max_bytes);
-    let grpc = tokio::spawn(
-        tonic::transport::Server::builder()
-            .add_service(service)
-            .serve_with_incoming_shutdown(
-                TcpListenerStream::new(grpc_listener),
-                wait_for_shutdown(shutdown_rx.clone()),
-            ),
-    );
+    let service = InterceptedService::new(service, TokenCheck::new(token, refused));
+    let keepalive = Duration::from_secs_f64(server_config.keepalive_interval_s);
+    let mut builder = tonic::transport::Server::builder()
+        .max_concurrent_streams(Some(server_config.max_concurrent_streams))
+        .http2_keepalive_interval(Some(keepalive))
+        .http2_keepalive_timeout(Some(Duration::from_secs_f64(
+            server_config.keepalive_timeout_s,
+        )))
+        .tcp_keepalive(Some(keepalive));
+    if let Some(tls) = tls {
+        builder = builder
+            .tls_config(tls)
+            .context("configuring TLS on the gRPC port")?;
+    }
+    let grpc = tokio::spawn(builder.add_service(service).serve_with_incoming_shutdown(
+        TcpListenerStream::new(grpc_listener),
+        wait_for_shutdown(shutdown_rx.clone()),
+    ));
     let metrics_server = tokio::spawn(serve_metrics(
         metrics_listener,
         registry,
@@ -400,7 +403,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         algorithm,
         queue: queue_rx,
         runtime: tokio::runtime::Handle::current(),
-        checkpointer: Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?,
+        checkpointer,
         progress_log: run_dir.join("progress.jsonl"),
         stop,
         progress,
@@ -428,6 +431,82 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         "learner stopped"
     );
     Ok(())
+}
+
+/// Restores the newest checkpoint that restores completely; ones that do not (damaged after
+/// their meta.json was written, e.g. a disk error) are set aside with a warning and the next
+/// older one is tried. Returns the algorithm, the counters and the actor ids handed out.
+fn restore_newest(
+    candidates: &[PathBuf],
+    config: &RunConfig,
+    device: tch::Device,
+) -> anyhow::Result<(Box<dyn algo::Algorithm + Send>, Progress, u64)> {
+    for path in candidates {
+        let mut algorithm = algo::build(config, device);
+        match restore(path, algorithm.as_mut()) {
+            Ok(meta) => {
+                tracing::info!(path = %path.display(), version = meta.version, "resumed");
+                return Ok((algorithm, Progress::from(&meta), meta.actors_registered));
+            }
+            // A checkpoint of another algorithm or layout is a configuration error, not damage.
+            Err(RestoreError::Incompatible(e)) => return Err(e),
+            Err(RestoreError::Damaged(e)) => {
+                let moved = Checkpointer::set_aside(path)
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_else(|e| format!("(could not move it: {e})"));
+                tracing::warn!(
+                    path = %path.display(),
+                    moved_to = %moved,
+                    error = %format!("{e:#}"),
+                    "checkpoint cannot be restored; trying the previous one"
+                );
+            }
+        }
+    }
+    bail!(
+        "--resume: none of the {} checkpoints could be restored",
+        candidates.len()
+    )
+}
+
+enum RestoreError {
+    Incompatible(anyhow::Error),
+    Damaged(anyhow::Error),
+}
+
+fn restore(
+    path: &Path,
+    algorithm: &mut dyn algo::Algorithm,
+) -> Result<junction_learner::checkpoint::CheckpointMeta, RestoreError> {
+    let damaged = |e: anyhow::Error| RestoreError::Damaged(e);
+    let checkpoint = Checkpointer::read(path)
+        .map_err(anyhow::Error::new)
+        .map_err(damaged)?;
+    let meta = checkpoint.meta;
+    if meta.algorithm != algorithm.name() {
+        return Err(RestoreError::Incompatible(anyhow::anyhow!(
+            "checkpoint {} was trained by {}, the configuration asks for {} (learner.algo)",
+            path.display(),
+            meta.algorithm,
+            algorithm.name()
+        )));
+    }
+    if meta.obs_layout_version != OBS_LAYOUT_VERSION {
+        return Err(RestoreError::Incompatible(anyhow::anyhow!(
+            "checkpoint {} uses observation layout {}, this build uses {}",
+            path.display(),
+            meta.obs_layout_version,
+            OBS_LAYOUT_VERSION
+        )));
+    }
+    let mut state = junction_common::weights::Decoded::decode(&checkpoint.state)
+        .with_context(|| format!("reading {}", path.display()))
+        .map_err(damaged)?;
+    algorithm
+        .restore(&checkpoint.policy, &mut state)
+        .with_context(|| format!("restoring from {}", path.display()))
+        .map_err(damaged)?;
+    Ok(meta)
 }
 
 async fn bind(addr: &str, what: &str) -> anyhow::Result<tokio::net::TcpListener> {

@@ -16,8 +16,18 @@ use crate::stats::WindowSummary;
 /// `reason` of fragments refused before validation: undecodable bytes, or another scenario.
 pub const REJECT_DECODE: &str = "decode";
 pub const REJECT_SCENARIO: &str = "scenario";
-/// `reason` of accepted fragments not trained on: older than `max_policy_lag` versions.
+/// `reason` of accepted fragments not trained on: more than `max_policy_lag` versions from
+/// the learner's policy.
 pub const DROP_STALE: &str = "stale";
+/// Still queued or waiting for a full batch when the run ended.
+pub const DROP_SHUTDOWN: &str = "shutdown";
+/// In a batch whose update failed (e.g. no alive agent in it, or a libtorch error).
+pub const DROP_UPDATE_FAILED: &str = "update_failed";
+/// Every drop reason, initialised at zero.
+pub const DROP_REASONS: [&str; 3] = [DROP_STALE, DROP_SHUTDOWN, DROP_UPDATE_FAILED];
+/// `reason` of RPCs refused before the handler: no or a wrong token, or too many streams.
+pub const REFUSED_UNAUTHENTICATED: &str = "unauthenticated";
+pub const REFUSED_STREAM_LIMIT: &str = "stream_limit";
 pub const TRANSPORT_GRPC: &str = "grpc";
 
 pub struct LearnerMetrics {
@@ -28,6 +38,9 @@ pub struct LearnerMetrics {
     pub fragments: IntCounter,
     pub fragments_rejected: IntCounterVec,
     pub fragments_dropped: IntCounterVec,
+    pub agent_steps_accepted: IntCounter,
+    pub agent_steps_dropped: IntCounterVec,
+    pub requests_refused: IntCounterVec,
     pub samples_trained: IntCounter,
     pub updates: IntCounter,
     pub update_seconds: Histogram,
@@ -133,11 +146,11 @@ impl LearnerMetrics {
             )?,
             agent_steps: counter(
                 names::LEARNER_AGENT_STEPS,
-                "Agent-steps consumed for training.",
+                "Agent-steps trained on (counted when their update completes).",
             )?,
             env_steps: counter(
                 names::LEARNER_ENV_STEPS,
-                "Scene steps consumed for training.",
+                "Scene steps trained on (counted when their update completes).",
             )?,
             fragments: counter(
                 names::LEARNER_FRAGMENTS,
@@ -150,7 +163,21 @@ impl LearnerMetrics {
             )?,
             fragments_dropped: counter_vec(
                 names::LEARNER_FRAGMENTS_DROPPED,
-                "Accepted fragments not trained on, by reason (stale: older than max_policy_lag).",
+                "Accepted fragments not trained on, by reason (stale: more than max_policy_lag versions off; shutdown: queued or batched when the run ended; update_failed).",
+                &["reason"],
+            )?,
+            agent_steps_accepted: counter(
+                names::LEARNER_AGENT_STEPS_ACCEPTED,
+                "Agent-steps of accepted fragments; each is trained on or counted as dropped.",
+            )?,
+            agent_steps_dropped: counter_vec(
+                names::LEARNER_AGENT_STEPS_DROPPED,
+                "Agent-steps of accepted fragments not trained on, by reason (as fragments_dropped).",
+                &["reason"],
+            )?,
+            requests_refused: counter_vec(
+                names::LEARNER_REQUESTS_REFUSED,
+                "RPCs refused before reaching a handler, by reason (unauthenticated: missing or wrong token; stream_limit: server.max_rollout_streams reached).",
                 &["reason"],
             )?,
             samples_trained: counter(
@@ -283,7 +310,13 @@ impl LearnerMetrics {
         {
             self.fragments_rejected.with_label_values(&[reason]);
         }
-        self.fragments_dropped.with_label_values(&[DROP_STALE]);
+        for reason in DROP_REASONS {
+            self.fragments_dropped.with_label_values(&[reason]);
+            self.agent_steps_dropped.with_label_values(&[reason]);
+        }
+        for reason in [REFUSED_UNAUTHENTICATED, REFUSED_STREAM_LIMIT] {
+            self.requests_refused.with_label_values(&[reason]);
+        }
         self.transport_bytes.with_label_values(&[TRANSPORT_GRPC]);
         for outcome in Outcome::ALL {
             self.episodes
@@ -316,6 +349,25 @@ impl LearnerMetrics {
         self.simulated_seconds
             .with_label_values(&[scenario])
             .inc_by(f64::from(fragment.sim_seconds));
+    }
+
+    /// Counts `fragments` (accepted earlier) as not trained on, for `reason`.
+    pub fn record_drop(&self, reason: &'static str, fragments: &[RolloutFragment]) {
+        let agent_steps: usize = fragments.iter().map(RolloutFragment::agent_steps).sum();
+        self.fragments_dropped
+            .with_label_values(&[reason])
+            .inc_by(fragments.len() as u64);
+        self.agent_steps_dropped
+            .with_label_values(&[reason])
+            .inc_by(agent_steps as u64);
+    }
+
+    /// Agent-steps dropped so far in this process, by reason.
+    pub fn dropped_agent_steps(&self) -> Vec<(&'static str, u64)> {
+        DROP_REASONS
+            .iter()
+            .map(|&r| (r, self.agent_steps_dropped.with_label_values(&[r]).get()))
+            .collect()
     }
 
     pub fn record_update(&self, stats: &UpdateStats, seconds: f64) {

@@ -6,16 +6,18 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use prost::Message;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 use junction_common::config::RunConfig;
-use junction_common::fragment::{FragmentError, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::{FragmentError, MAX_NAME_BYTES, PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_server::Learner};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
-use crate::metrics::{LearnerMetrics, REJECT_DECODE, REJECT_SCENARIO, TRANSPORT_GRPC};
+use crate::metrics::{
+    LearnerMetrics, REFUSED_STREAM_LIMIT, REJECT_DECODE, REJECT_SCENARIO, TRANSPORT_GRPC,
+};
 
 /// State the gRPC handlers share with the training loop.
 pub struct Shared {
@@ -27,6 +29,9 @@ pub struct Shared {
     next_actor: AtomicU64,
     /// Rejection reasons already logged at warn level (later ones go to debug).
     logged_rejections: Mutex<HashSet<&'static str>>,
+    /// Open rollout streams and policy streams, each capped at server.max_rollout_streams.
+    rollout_streams: Arc<Semaphore>,
+    policy_streams: Arc<Semaphore>,
 }
 
 impl Shared {
@@ -34,7 +39,6 @@ impl Shared {
         let (weights, _) = watch::channel(Arc::new(initial));
         metrics.initialise_labels(&config.scenario.name);
         Shared {
-            config,
             metrics,
             weights,
             status: Mutex::new(proto::StatusReply {
@@ -43,7 +47,45 @@ impl Shared {
             }),
             next_actor: AtomicU64::new(1),
             logged_rejections: Mutex::new(HashSet::new()),
+            rollout_streams: Arc::new(Semaphore::new(config.server.max_rollout_streams)),
+            policy_streams: Arc::new(Semaphore::new(config.server.max_rollout_streams)),
+            config,
         }
+    }
+
+    /// Actor ids handed out so far (recorded in checkpoints).
+    pub fn actors_registered(&self) -> u64 {
+        self.next_actor.load(Ordering::Relaxed).saturating_sub(1)
+    }
+
+    /// A resumed learner numbers new actors after those of the run it continues, so no two
+    /// actors share an id (their scene seeds derive from it).
+    pub fn continue_actor_ids(&self, registered: u64) {
+        self.next_actor
+            .fetch_max(registered.saturating_add(1), Ordering::Relaxed);
+    }
+
+    /// One of the `kind` stream slots, or RESOURCE_EXHAUSTED (counted) when all are taken.
+    fn stream_slot(
+        &self,
+        slots: &Arc<Semaphore>,
+        kind: &str,
+    ) -> Result<OwnedSemaphorePermit, Status> {
+        Arc::clone(slots).try_acquire_owned().map_err(|_| {
+            self.metrics
+                .requests_refused
+                .with_label_values(&[REFUSED_STREAM_LIMIT])
+                .inc();
+            tracing::warn!(
+                kind,
+                limit = self.config.server.max_rollout_streams,
+                "refused a stream: server.max_rollout_streams reached"
+            );
+            Status::resource_exhausted(format!(
+                "the learner already serves {} {kind} streams (server.max_rollout_streams); retry later",
+                self.config.server.max_rollout_streams
+            ))
+        })
     }
 
     /// Values per observation row in fragments: what the policy takes.
@@ -95,6 +137,17 @@ fn check_version(got: u32) -> Result<(), Status> {
     }
 }
 
+/// Names and ids from peers end up in logs: bounded, or refused.
+fn check_name(field: &str, value: &str) -> Result<(), Status> {
+    if value.len() > MAX_NAME_BYTES {
+        return Err(Status::invalid_argument(format!(
+            "{field} is {} bytes long (at most {MAX_NAME_BYTES})",
+            value.len()
+        )));
+    }
+    Ok(())
+}
+
 /// Keeps `connected_actors` right however a stream ends.
 struct ConnectedGuard<'a>(&'a prometheus::IntGauge);
 
@@ -119,6 +172,7 @@ impl Learner for LearnerService {
     ) -> Result<Response<proto::RegisterReply>, Status> {
         let hello = request.into_inner();
         check_version(hello.protocol_version)?;
+        check_name("actor_name", &hello.actor_name)?;
         let actor_id = format!(
             "actor-{}",
             self.shared.next_actor.fetch_add(1, Ordering::Relaxed)
@@ -142,6 +196,7 @@ impl Learner for LearnerService {
         request: Request<Streaming<proto::RolloutFragment>>,
     ) -> Result<Response<proto::PushSummary>, Status> {
         let shared = &self.shared;
+        let _slot = shared.stream_slot(&shared.rollout_streams, "rollout")?;
         let _connected = ConnectedGuard::new(&shared.metrics.connected_actors);
         let mut stream = request.into_inner();
         let mut summary = proto::PushSummary::default();
@@ -191,11 +246,14 @@ impl Learner for LearnerService {
                 }
             };
             let agent_steps = fragment.agent_steps() as u64;
-            shared.metrics.fragments.inc();
             // A full queue parks this stream here, so the actor's sends stall (backpressure).
+            // A fragment counts as accepted once queued: from then on it is trained on or
+            // counted as dropped.
             self.queue.send(fragment).await.map_err(|_| {
                 Status::unavailable("the learner has finished training and is shutting down")
             })?;
+            shared.metrics.fragments.inc();
+            shared.metrics.agent_steps_accepted.inc_by(agent_steps);
             summary.accepted_fragments += 1;
             summary.accepted_agent_steps += agent_steps;
         }
@@ -210,16 +268,26 @@ impl Learner for LearnerService {
     ) -> Result<Response<Self::WatchPolicyStream>, Status> {
         let watch_request = request.into_inner();
         check_version(watch_request.protocol_version)?;
+        check_name("actor_id", &watch_request.actor_id)?;
+        let slot = self
+            .shared
+            .stream_slot(&self.shared.policy_streams, "policy")?;
         let mut latest = self.shared.weights.subscribe();
         let (tx, rx) = mpsc::channel(2);
         tokio::spawn(async move {
+            let _slot = slot;
             loop {
                 let weights = Arc::clone(&latest.borrow_and_update());
                 let finished = weights.run_finished;
                 if tx.send(Ok(weights.as_ref().clone())).await.is_err() || finished {
                     break;
                 }
-                if latest.changed().await.is_err() {
+                // An actor that went away frees its slot now, not at the next version.
+                let changed = tokio::select! {
+                    changed = latest.changed() => changed,
+                    () = tx.closed() => break,
+                };
+                if changed.is_err() {
                     break;
                 }
             }

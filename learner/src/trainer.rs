@@ -20,7 +20,7 @@ use junction_common::weights;
 
 use crate::algo::{Algorithm, Stage, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
-use crate::metrics::DROP_STALE;
+use crate::metrics::{DROP_SHUTDOWN, DROP_STALE, DROP_UPDATE_FAILED};
 use crate::progress::{LcfProgress, ProgressLine};
 use crate::server::Shared;
 use crate::stats::EpisodeWindow;
@@ -118,6 +118,8 @@ impl Trainer {
             started,
         };
         let start_progress = self.progress;
+        // A resumed run answers Status with its restored counters from the start.
+        self.publish_status(&reporter, &window.summary());
         let _span = tracing::info_span!("trainer", algorithm = self.algorithm.name()).entered();
         tracing::info!(version = self.progress.version, "training started");
         loop {
@@ -144,34 +146,17 @@ impl Trainer {
                 .set(self.queue.len() as i64);
             match received {
                 Ok(Some(fragment)) => {
-                    let (collisions, sim_seconds) =
-                        (fragment.collisions(), f64::from(fragment.sim_seconds));
-                    reporter.episodes += fragment.episodes.len() as u64;
-                    reporter.collisions += collisions;
-                    reporter.sim_seconds += sim_seconds;
-                    window.record(&fragment.episodes, collisions, sim_seconds);
+                    self.observe(&fragment, &mut reporter, &mut window);
                     let metrics = &self.shared.metrics;
-                    metrics.record_fragment(&config.scenario.name, &fragment);
-                    let lag = self
-                        .progress
-                        .version
-                        .saturating_sub(fragment.behaviour_version);
+                    // Both directions: a fragment from a *newer* version comes from a learner
+                    // that died after its last checkpoint; its weights are as far from ours.
+                    let lag = self.progress.version.abs_diff(fragment.behaviour_version);
                     metrics.policy_lag.observe(lag as f64);
                     if lag > config.learner.max_policy_lag {
-                        metrics
-                            .fragments_dropped
-                            .with_label_values(&[DROP_STALE])
-                            .inc();
+                        metrics.record_drop(DROP_STALE, std::slice::from_ref(&fragment));
                         tracing::debug!(lag, actor = %fragment.actor_id, "dropped stale fragment");
                     } else {
                         pending_env_steps += fragment.steps;
-                        self.progress.env_steps += fragment.steps as u64;
-                        self.progress.agent_steps += fragment.agent_steps() as u64;
-                        self.shared.metrics.env_steps.inc_by(fragment.steps as u64);
-                        self.shared
-                            .metrics
-                            .agent_steps
-                            .inc_by(fragment.agent_steps() as u64);
                         pending.push(fragment);
                     }
                 }
@@ -189,6 +174,35 @@ impl Trainer {
                 self.report(&mut reporter, &window)?;
             }
         }
+        // Tell actors the run is over before refusing their fragments, so they take the
+        // streams that end next for the end of the run, not for a failure.
+        self.advance_stage();
+        let last = weights_message(
+            self.algorithm.as_ref(),
+            self.progress.version,
+            self.stage.agents,
+            true,
+        )?;
+        self.shared.weights.send_replace(Arc::new(last));
+        // Nothing accepted goes uncounted: refuse new fragments, then count what was queued
+        // or waiting for a full batch.
+        self.queue.close();
+        while let Ok(fragment) = self.queue.try_recv() {
+            self.observe(&fragment, &mut reporter, &mut window);
+            pending.push(fragment);
+        }
+        self.shared.metrics.queue_fragments.set(0);
+        if !pending.is_empty() {
+            tracing::info!(
+                fragments = pending.len(),
+                agent_steps = pending
+                    .iter()
+                    .map(RolloutFragment::agent_steps)
+                    .sum::<usize>(),
+                "run ended with fragments short of a batch: counted as dropped (shutdown)"
+            );
+            self.shared.metrics.record_drop(DROP_SHUTDOWN, &pending);
+        }
         self.report(&mut reporter, &window)?;
         if let Some(lcf) = &reporter.lcf {
             tracing::info!(
@@ -198,17 +212,26 @@ impl Trainer {
                 "final LCF angle φ"
             );
         }
-        // The checkpoint counts every agent-step received, so the stage it implies is logged.
-        self.advance_stage();
         self.checkpoint()?;
-        let last = weights_message(
-            self.algorithm.as_ref(),
-            self.progress.version,
-            self.stage.agents,
-            true,
-        )?;
-        self.shared.weights.send_replace(Arc::new(last));
         Ok(self.progress)
+    }
+
+    /// Folds a fragment's episodes, collisions and simulated time into the driving metrics,
+    /// whether it is trained on or dropped.
+    fn observe(
+        &self,
+        fragment: &RolloutFragment,
+        reporter: &mut Reporter,
+        window: &mut EpisodeWindow,
+    ) {
+        let (collisions, sim_seconds) = (fragment.collisions(), f64::from(fragment.sim_seconds));
+        reporter.episodes += fragment.episodes.len() as u64;
+        reporter.collisions += collisions;
+        reporter.sim_seconds += sim_seconds;
+        window.record(&fragment.episodes, collisions, sim_seconds);
+        self.shared
+            .metrics
+            .record_fragment(&self.shared.config.scenario.name, fragment);
     }
 
     /// One update on `batch`; its statistics, or none when it was skipped.
@@ -218,11 +241,18 @@ impl Trainer {
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
             Err(e) => {
-                tracing::warn!(error = %e, "update skipped");
+                tracing::warn!(error = %e, "update skipped; its fragments are counted as dropped (update_failed)");
+                self.shared.metrics.record_drop(DROP_UPDATE_FAILED, batch);
                 return Ok(None);
             }
         };
         let seconds = started.elapsed().as_secs_f64();
+        let env_steps: u64 = batch.iter().map(|f| f.steps as u64).sum();
+        let agent_steps: u64 = batch.iter().map(|f| f.agent_steps() as u64).sum();
+        self.progress.env_steps += env_steps;
+        self.progress.agent_steps += agent_steps;
+        self.shared.metrics.env_steps.inc_by(env_steps);
+        self.shared.metrics.agent_steps.inc_by(agent_steps);
         self.progress.version += 1;
         self.progress.updates += 1;
         self.progress.samples_trained += stats.samples_trained as u64;
@@ -288,6 +318,8 @@ impl Trainer {
                 .map(|d| d.as_secs())
                 .unwrap_or(0),
             config: self.shared.config.to_toml(),
+            actors_registered: self.shared.actors_registered(),
+            format_version: crate::checkpoint::FORMAT_VERSION,
         };
         let path = self.checkpointer.write(&meta, &policy, &state)?;
         tracing::info!(version = p.version, path = %path.display(), "checkpoint written");
@@ -316,15 +348,7 @@ impl Trainer {
             queue = self.queue.len(),
             "progress"
         );
-        if let Ok(mut status) = self.shared.status.lock() {
-            status.policy_version = self.progress.version;
-            status.agent_steps_consumed = self.progress.agent_steps;
-            status.samples_trained = self.progress.samples_trained;
-            status.success_rate = summary.success_rate;
-            status.crash_rate = summary.crash_rate;
-            status.mean_episode_reward = summary.mean_reward;
-            status.episodes = reporter.episodes;
-        }
+        self.publish_status(reporter, &summary);
         let config = &self.shared.config;
         let line = ProgressLine {
             elapsed_s: reporter.started.elapsed().as_secs_f64(),
@@ -344,6 +368,14 @@ impl Trainer {
             episodes_total: reporter.episodes,
             collisions_total: reporter.collisions,
             sim_seconds_total: reporter.sim_seconds,
+            accepted_agent_steps: self.shared.metrics.agent_steps_accepted.get(),
+            dropped_agent_steps: self
+                .shared
+                .metrics
+                .dropped_agent_steps()
+                .into_iter()
+                .map(|(reason, steps)| (reason.to_string(), steps))
+                .collect(),
             window: summary,
             lcf: reporter.lcf.as_ref().map(LcfSnapshot::to_progress),
         };
@@ -356,6 +388,20 @@ impl Trainer {
         writeln!(file, "{line}")
             .with_context(|| format!("writing {}", self.progress_log.display()))?;
         Ok(())
+    }
+}
+
+impl Trainer {
+    fn publish_status(&self, reporter: &Reporter, summary: &crate::stats::WindowSummary) {
+        if let Ok(mut status) = self.shared.status.lock() {
+            status.policy_version = self.progress.version;
+            status.agent_steps_consumed = self.progress.agent_steps;
+            status.samples_trained = self.progress.samples_trained;
+            status.success_rate = summary.success_rate;
+            status.crash_rate = summary.crash_rate;
+            status.mean_episode_reward = summary.mean_reward;
+            status.episodes = reporter.episodes;
+        }
     }
 }
 
@@ -421,4 +467,125 @@ fn log_update(stats: &UpdateStats, seconds: f64) {
         skipped = stats.skipped_minibatches,
         "update"
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo;
+    use crate::metrics::LearnerMetrics;
+    use junction_common::config::RunConfig;
+    use junction_common::lcf;
+
+    /// 2 steps of `agents` live agents of the default scenario, from policy `version`.
+    fn fragment(agents: usize, version: u64) -> RolloutFragment {
+        let (steps, obs_dim) = (2, 91);
+        let cells = steps * agents;
+        RolloutFragment {
+            actor_id: "test".into(),
+            behaviour_version: version,
+            scenario: "intersection".into(),
+            steps,
+            agents,
+            obs_dim,
+            action_dim: 2,
+            obs: vec![0.5; cells * obs_dim],
+            actions: vec![0.1; cells * 2],
+            log_probs: vec![-1.0; cells],
+            rewards: vec![0.3; cells],
+            costs: vec![0.0; cells],
+            dones: vec![false; cells],
+            alive: vec![true; cells],
+            bootstrap_obs: vec![0.5; agents * obs_dim],
+            neighbour_offsets: vec![0; cells + 1],
+            lcf_features: vec![0.5; cells * lcf::FEATURES],
+            sim_seconds: 0.2,
+            ..RolloutFragment::default()
+        }
+    }
+
+    #[test]
+    fn every_received_agent_step_is_trained_or_dropped_by_reason() {
+        let config = RunConfig::load(
+            None,
+            &[
+                "ppo.hidden=[8]".into(),
+                "ppo.epochs=1".into(),
+                "ppo.train_batch_env_steps=4".into(),
+                "run.max_updates=1".into(),
+                "run.max_seconds=60".into(),
+                "run.checkpoint_every_updates=0".into(),
+                "learner.max_policy_lag=2".into(),
+            ],
+        )
+        .unwrap();
+        let dir = std::env::temp_dir().join(format!("junction-trainer-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        // As on the learner's blocking thread: inside the runtime's context.
+        let _context = runtime.enter();
+        let algorithm = algo::build(&config, tch::Device::Cpu);
+        let initial = weights_message(algorithm.as_ref(), 0, 1, false).unwrap();
+        let metrics = LearnerMetrics::new().unwrap();
+        let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
+        let (tx, queue) = mpsc::channel(16);
+        // Fresh 3 agents; stale by 5 versions in the future (a learner that died after its
+        // checkpoint); fresh 2 agents: the batch is full, one update, the budget is spent.
+        // Then two more wait in the queue when the run ends.
+        let sent = [
+            fragment(3, 0),
+            fragment(4, 5),
+            fragment(2, 0),
+            fragment(1, 1),
+            fragment(5, 0),
+        ];
+        for f in &sent {
+            tx.try_send(f.clone()).unwrap();
+        }
+        let trainer = Trainer {
+            shared: Arc::clone(&shared),
+            algorithm,
+            queue,
+            runtime: runtime.handle().clone(),
+            checkpointer: Checkpointer::new(dir.join("checkpoints"), 1).unwrap(),
+            progress_log: dir.join("progress.jsonl"),
+            stop: Arc::new(AtomicBool::new(false)),
+            progress: Progress::default(),
+            stage: Stage {
+                index: 0,
+                agents: 30,
+            },
+        };
+        let progress = trainer.run().unwrap();
+        let m = &shared.metrics;
+        let dropped = |reason: &str| m.agent_steps_dropped.with_label_values(&[reason]).get();
+        assert_eq!((progress.version, progress.agent_steps), (1, 2 * (3 + 2)));
+        assert_eq!(m.agent_steps.get(), 10);
+        assert_eq!(dropped(DROP_STALE), 2 * 4);
+        assert_eq!(dropped(DROP_SHUTDOWN), 2 * (1 + 5));
+        assert_eq!(dropped(DROP_UPDATE_FAILED), 0);
+        let total: u64 = sent.iter().map(|f| f.agent_steps() as u64).sum();
+        assert_eq!(
+            m.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN),
+            total
+        );
+        assert_eq!(
+            m.fragments_dropped
+                .with_label_values(&[DROP_SHUTDOWN])
+                .get(),
+            2
+        );
+        // The queue is closed: nothing can be accepted after the final count.
+        assert!(tx.try_send(fragment(1, 1)).is_err());
+        // The last progress line carries the same accounting.
+        let log = std::fs::read_to_string(dir.join("progress.jsonl")).unwrap();
+        let last: serde_json::Value = serde_json::from_str(log.lines().last().unwrap()).unwrap();
+        assert_eq!(last["dropped_agent_steps"]["shutdown"], 12);
+        assert_eq!(last["dropped_agent_steps"]["stale"], 8);
+        assert_eq!(last["agent_steps"], 10);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

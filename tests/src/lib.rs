@@ -74,8 +74,24 @@ pub struct Process {
 impl Process {
     /// Starts `program` with `args`, stdout and stderr going to `<log_dir>/<name>.log`.
     pub fn start(name: &str, program: &Path, args: &[String], log_dir: &Path) -> Process {
+        Process::start_with_env(name, program, args, log_dir, &[])
+    }
+
+    /// [`Process::start`] with extra environment variables. A log of the same name from an
+    /// earlier process (a restart) is appended to, not replaced.
+    pub fn start_with_env(
+        name: &str,
+        program: &Path,
+        args: &[String],
+        log_dir: &Path,
+        env: &[(&str, &str)],
+    ) -> Process {
         let log = log_dir.join(format!("{name}.log"));
-        let out = std::fs::File::create(&log).expect("create log file");
+        let out = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log)
+            .expect("create log file");
         let err = out.try_clone().expect("clone log file");
         let mut command = Command::new(program);
         command
@@ -83,7 +99,8 @@ impl Process {
             .stdin(Stdio::null())
             .stdout(out)
             .stderr(err)
-            .env("RUST_LOG", "info");
+            .env("RUST_LOG", "info")
+            .envs(env.iter().copied());
         // SAFETY: prctl is async-signal-safe; it only asks the kernel to SIGKILL this child
         // when the thread that spawned it (the test) dies.
         unsafe {
@@ -187,25 +204,31 @@ pub const QUICK_RUN: &[&str] = &[
 ];
 
 /// Starts `learner serve` on ephemeral loopback ports and waits until it serves. `run_dir`
-/// is passed as `--run-dir` unless `extra` resumes a run (`--resume DIR`).
+/// is passed as `--run-dir` unless `extra` resumes a run (`--resume DIR`); the gRPC port is
+/// ephemeral unless `extra` names one (`--addr`).
 pub fn start_learner(run_dir: &Path, log_dir: &Path, extra: &[&str]) -> (Process, Endpoints) {
-    let mut args: Vec<String> = [
-        "serve",
-        "--addr",
-        "127.0.0.1:0",
-        "--metrics-addr",
-        "127.0.0.1:0",
-        "--device",
-        "cpu",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
+    start_learner_with_env(run_dir, log_dir, extra, &[])
+}
+
+/// [`start_learner`] with extra environment variables.
+pub fn start_learner_with_env(
+    run_dir: &Path,
+    log_dir: &Path,
+    extra: &[&str],
+    env: &[(&str, &str)],
+) -> (Process, Endpoints) {
+    let mut args: Vec<String> = ["serve", "--metrics-addr", "127.0.0.1:0", "--device", "cpu"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    if !extra.contains(&"--addr") {
+        args.extend(["--addr".to_string(), "127.0.0.1:0".to_string()]);
+    }
     if !extra.contains(&"--resume") {
         args.extend(["--run-dir".to_string(), run_dir.display().to_string()]);
     }
     args.extend(extra.iter().map(|s| s.to_string()));
-    let mut learner = Process::start("learner", &bin("learner"), &args, log_dir);
+    let mut learner = Process::start_with_env("learner", &bin("learner"), &args, log_dir, env);
     let endpoints_file = run_dir.join("endpoints.json");
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
@@ -319,4 +342,28 @@ pub fn metric_sum(metrics: &BTreeMap<String, f64>, name: &str) -> f64 {
         .filter(|(key, _)| *key == name || key.starts_with(&format!("{name}{{")))
         .map(|(_, v)| v)
         .sum()
+}
+
+/// Resident memory of process `pid` in KiB (VmRSS in /proc/<pid>/status), if it still runs.
+pub fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|line| line.strip_prefix("VmRSS:"))
+        .and_then(|rest| rest.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
+/// Versions of the complete checkpoints (`ckpt-<version>/meta.json`) in `<run_dir>/checkpoints`.
+pub fn checkpoint_versions(run_dir: &Path) -> Vec<u64> {
+    let mut versions: Vec<u64> = std::fs::read_dir(run_dir.join("checkpoints"))
+        .map(|entries| {
+            entries
+                .flatten()
+                .filter(|e| e.path().join("meta.json").exists())
+                .filter_map(|e| e.file_name().to_str()?.strip_prefix("ckpt-")?.parse().ok())
+                .collect()
+        })
+        .unwrap_or_default();
+    versions.sort_unstable();
+    versions
 }

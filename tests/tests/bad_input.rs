@@ -177,3 +177,68 @@ async fn invalid_fragments_are_refused_with_clear_errors_and_counted() {
     );
     tokio::task::block_in_place(|| learner.stop(Duration::from_secs(30)));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn oversized_names_and_ids_are_refused_on_every_rpc() {
+    let dir = TempDir::new("bad-names");
+    let run_dir = dir.path().join("run");
+    let (mut learner, endpoints) = tokio::task::block_in_place(|| {
+        start_learner(&run_dir, dir.path(), &["--max-seconds", "120"])
+    });
+    let mut client = LearnerClient::connect(format!("http://{}", endpoints.grpc))
+        .await
+        .expect("connect");
+    let long = "x".repeat(300);
+    let register = client
+        .register(proto::RegisterRequest {
+            protocol_version: PROTOCOL_VERSION,
+            actor_name: long.clone(),
+            scenes: 1,
+        })
+        .await
+        .expect_err("a 300-byte actor name");
+    assert_eq!(register.code(), Code::InvalidArgument);
+    assert!(
+        register.message().contains("actor_name is 300 bytes long"),
+        "{register:?}"
+    );
+    let watch = client
+        .watch_policy(proto::WatchPolicyRequest {
+            protocol_version: PROTOCOL_VERSION,
+            actor_id: long.clone(),
+            have_version: 0,
+        })
+        .await
+        .expect_err("a 300-byte actor id");
+    assert_eq!(watch.code(), Code::InvalidArgument);
+    let mut fragment = valid_fragment();
+    fragment.actor_id = long;
+    let push = push(&mut client, fragment)
+        .await
+        .expect_err("a 300-byte actor id");
+    assert_eq!(push.code(), Code::InvalidArgument);
+    assert!(
+        push.message().contains("actor_id is 300 bytes long"),
+        "{push:?}"
+    );
+    // Another protocol version on Register and WatchPolicy.
+    let old = client
+        .register(proto::RegisterRequest {
+            protocol_version: PROTOCOL_VERSION + 1,
+            actor_name: "a".into(),
+            scenes: 1,
+        })
+        .await
+        .expect_err("another protocol");
+    assert_eq!(old.code(), Code::FailedPrecondition);
+    client
+        .status(proto::StatusRequest {})
+        .await
+        .expect("still serving");
+    let m = tokio::task::block_in_place(|| scrape(&endpoints.metrics));
+    assert_eq!(
+        m.get("junction_learner_fragments_rejected_total{reason=\"shape\"}"),
+        Some(&1.0)
+    );
+    tokio::task::block_in_place(|| learner.stop(Duration::from_secs(30)));
+}

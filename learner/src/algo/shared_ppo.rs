@@ -640,3 +640,66 @@ mod tests {
         assert_ne!(host_state(&plain), host_state(&cooperative));
     }
 }
+
+#[cfg(test)]
+mod resume_tests {
+    use super::testing::{host_state, ippo, neighbourhood_fragment, small_run};
+    use super::*;
+    use crate::algo::ippo::Ippo;
+
+    /// Minibatches of 4 of the fixture's 11 agent-steps: the shuffle decides what each
+    /// gradient step sees.
+    fn shuffling_learner() -> Ippo {
+        tch::manual_seed(11);
+        let mut run = small_run();
+        run.ppo.minibatch_size = 4;
+        run.ppo.epochs = 3;
+        ippo(&run, 2, 2)
+    }
+
+    /// The state blob of `algo` with the update count set to `updates`.
+    fn state_with_updates(algo: &Ippo, updates: f32) -> Vec<u8> {
+        let mut state = algo.state_tensors();
+        for (name, tensor) in &mut state {
+            if name == "ippo.updates" {
+                *tensor = Tensor::from_slice(&[updates]);
+            }
+        }
+        let refs: Vec<(String, &Tensor)> = state.iter().map(|(n, t)| (n.clone(), t)).collect();
+        weights::encode(&refs, Default::default()).unwrap()
+    }
+
+    #[test]
+    fn a_resumed_learner_shuffles_its_next_minibatches_as_the_original_would() {
+        let fragment = neighbourhood_fragment();
+        let mut original = shuffling_learner();
+        for _ in 0..2 {
+            original.update(std::slice::from_ref(&fragment)).unwrap();
+        }
+        let policy = original.policy().to_bytes(2).unwrap();
+        let restore = |updates: f32| {
+            let mut learner = shuffling_learner();
+            let state = state_with_updates(&original, updates);
+            learner
+                .restore(&policy, &mut Decoded::decode(&state).unwrap())
+                .unwrap();
+            learner
+        };
+        let mut resumed = restore(2.0);
+        // The control: the same weights and optimiser state, but the update count lost.
+        let mut forgetful = restore(0.0);
+        original.update(std::slice::from_ref(&fragment)).unwrap();
+        resumed.update(std::slice::from_ref(&fragment)).unwrap();
+        forgetful.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!(host_state(&original), host_state(&resumed));
+        assert_eq!(
+            original.policy().to_bytes(3).unwrap(),
+            resumed.policy().to_bytes(3).unwrap()
+        );
+        assert_ne!(
+            original.policy().to_bytes(3).unwrap(),
+            forgetful.policy().to_bytes(3).unwrap(),
+            "the minibatch order does not depend on the update count: this test proves nothing"
+        );
+    }
+}

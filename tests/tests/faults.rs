@@ -1,0 +1,302 @@
+//! Faults with real processes on loopback: an actor killed mid-stream, a learner killed and
+//! resumed on its port while its actors wait, a learner killed in the middle of writing a
+//! checkpoint. Every process is stopped when a test ends, however it ends.
+
+use std::time::Duration;
+
+use junction_tests::{
+    Endpoints, Process, QUICK_RUN, TempDir, checkpoint_versions, free_port, metric_sum, scrape,
+    start_actor, start_learner, start_learner_with_env, wait_until,
+};
+
+fn gauge(endpoints: &Endpoints, name: &str) -> f64 {
+    metric_sum(&scrape(&endpoints.metrics), name)
+}
+
+fn version(endpoints: &Endpoints) -> f64 {
+    gauge(endpoints, "junction_learner_policy_version")
+}
+
+/// The learner's log line `resumed` names the version it continued from.
+fn resumed_version(learner: &Process) -> Option<u64> {
+    let log = learner.log();
+    let line = log.lines().rev().find(|l| l.contains("resumed"))?;
+    let rest = &line[line.find("version=")? + "version=".len()..];
+    rest.split(|c: char| !c.is_ascii_digit())
+        .next()?
+        .parse()
+        .ok()
+}
+
+#[test]
+fn an_actor_killed_mid_stream_leaves_the_learner_training_with_the_other() {
+    let dir = TempDir::new("fault-actor");
+    let run_dir = dir.path().join("run");
+    let (mut learner, endpoints) = start_learner(
+        &run_dir,
+        dir.path(),
+        &[&["--max-seconds", "300"], QUICK_RUN].concat(),
+    );
+    let mut doomed = start_actor(&endpoints, dir.path(), "doomed", &[]);
+    let started = wait_until(Duration::from_secs(120), || version(&endpoints) >= 2.0);
+    assert!(started, "no versions\n{}", learner.log_tail(30));
+    // A late joiner gets the current weights first.
+    let joined_at = version(&endpoints);
+    let survivor_metrics = format!("127.0.0.1:{}", free_port());
+    let survivor = start_actor(
+        &endpoints,
+        dir.path(),
+        "survivor",
+        &["--metrics-addr", &survivor_metrics],
+    );
+    let current = wait_until(Duration::from_secs(60), || {
+        metric_sum(&scrape(&survivor_metrics), "junction_actor_policy_version") >= joined_at
+    });
+    assert!(
+        current,
+        "the late actor did not start from v{joined_at}\n{}",
+        survivor.log_tail(20)
+    );
+    let both = wait_until(Duration::from_secs(120), || {
+        let m = scrape(&endpoints.metrics);
+        metric_sum(&m, "junction_learner_connected_actors") == 2.0
+            && metric_sum(&m, "junction_learner_policy_version") >= 2.0
+    });
+    assert!(
+        both,
+        "two actors never trained together\n{}\n{}",
+        learner.log_tail(30),
+        doomed.log_tail(20)
+    );
+
+    // SIGKILL: no goodbye, possibly in the middle of a fragment.
+    doomed.signal(libc::SIGKILL);
+    assert!(doomed.wait_exit(Duration::from_secs(10)).is_some());
+    let gone = wait_until(Duration::from_secs(30), || {
+        gauge(&endpoints, "junction_learner_connected_actors") == 1.0
+    });
+    assert!(
+        gone,
+        "the dead actor's stream still counts as connected\n{}",
+        learner.log_tail(30)
+    );
+    let after_kill = version(&endpoints);
+    let advanced = wait_until(Duration::from_secs(120), || {
+        version(&endpoints) >= after_kill + 3.0
+    });
+    assert!(
+        advanced,
+        "no new versions with the surviving actor (stuck at {after_kill})\n{}\n{}",
+        learner.log_tail(30),
+        survivor.log_tail(20)
+    );
+    let m = scrape(&endpoints.metrics);
+    // A peer that vanished is not invalid data.
+    assert_eq!(
+        metric_sum(&m, "junction_learner_fragments_rejected_total"),
+        0.0,
+        "{m:?}"
+    );
+    assert!(learner.try_exit().is_none(), "the learner died");
+    learner.signal(libc::SIGTERM);
+    assert!(
+        learner
+            .wait_exit(Duration::from_secs(60))
+            .is_some_and(|s| s.success()),
+        "{}",
+        learner.log_tail(30)
+    );
+}
+
+#[test]
+fn a_killed_learner_resumes_on_its_port_and_its_actors_come_back() {
+    let dir = TempDir::new("fault-learner");
+    let run_dir = dir.path().join("run");
+    let run = run_dir.display().to_string();
+    let addr = format!("127.0.0.1:{}", free_port());
+    let settings = [
+        &["--addr", &addr, "--max-seconds", "300"],
+        QUICK_RUN,
+        &["--set", "run.checkpoint_every_updates=1"],
+    ]
+    .concat();
+    let (mut learner, endpoints) = start_learner(&run_dir, dir.path(), &settings);
+    let actor_metrics = format!("127.0.0.1:{}", free_port());
+    let mut actor = start_actor(
+        &endpoints,
+        dir.path(),
+        "actor",
+        &[
+            "--metrics-addr",
+            &actor_metrics,
+            "--connect-timeout",
+            "120",
+            "--retry-max-delay",
+            "1",
+        ],
+    );
+    let trained = wait_until(Duration::from_secs(120), || {
+        version(&endpoints) >= 3.0 && checkpoint_versions(&run_dir).len() >= 2
+    });
+    assert!(
+        trained,
+        "no versions and checkpoints\n{}",
+        learner.log_tail(30)
+    );
+
+    learner.signal(libc::SIGKILL);
+    assert!(learner.wait_exit(Duration::from_secs(10)).is_some());
+    let checkpointed = *checkpoint_versions(&run_dir).last().expect("a checkpoint");
+    // The actor waits: it retries instead of exiting, and says it is disconnected.
+    let waiting = wait_until(Duration::from_secs(20), || {
+        metric_sum(&scrape(&actor_metrics), "junction_actor_connected") == 0.0
+    });
+    assert!(waiting, "the actor did not notice\n{}", actor.log_tail(20));
+    std::thread::sleep(Duration::from_secs(2));
+    assert!(
+        actor.try_exit().is_none(),
+        "the actor gave up on the learner\n{}",
+        actor.log_tail(20)
+    );
+    assert!(actor.log().contains("learner unreachable"));
+
+    // Same port, same run: continue from the newest checkpoint.
+    let (mut resumed, endpoints) = start_learner(
+        &run_dir,
+        dir.path(),
+        &["--resume", &run, "--addr", &addr, "--max-seconds", "300"],
+    );
+    assert_eq!(
+        resumed_version(&resumed),
+        Some(checkpointed),
+        "did not resume from ckpt {checkpointed}\n{}",
+        resumed.log_tail(30)
+    );
+    let back = wait_until(Duration::from_secs(60), || {
+        let a = scrape(&actor_metrics);
+        metric_sum(&a, "junction_actor_connected") == 1.0
+            && metric_sum(&a, "junction_actor_reconnects_total") >= 1.0
+    });
+    assert!(
+        back,
+        "the actor did not come back\n{}\n{}",
+        actor.log_tail(30),
+        resumed.log_tail(30)
+    );
+    let first = version(&endpoints);
+    assert!(
+        first >= checkpointed as f64,
+        "the version went back from {checkpointed} to {first}"
+    );
+    let advanced = wait_until(Duration::from_secs(120), || {
+        version(&endpoints) >= checkpointed as f64 + 3.0
+    });
+    assert!(
+        advanced,
+        "versions did not advance after the restart\n{}\n{}",
+        resumed.log_tail(30),
+        actor.log_tail(30)
+    );
+    // The actor runs the restarted learner's weights, the same process throughout.
+    let running = metric_sum(&scrape(&actor_metrics), "junction_actor_policy_version");
+    assert!(running > checkpointed as f64, "actor runs v{running}");
+    assert!(
+        checkpoint_versions(&run_dir).last() > Some(&checkpointed),
+        "no new checkpoints after the restart"
+    );
+
+    resumed.signal(libc::SIGTERM);
+    assert!(
+        resumed
+            .wait_exit(Duration::from_secs(60))
+            .is_some_and(|s| s.success())
+    );
+    let actor_status = actor.wait_exit(Duration::from_secs(30));
+    assert!(
+        actor_status.is_some_and(|s| s.success()),
+        "the actor did not finish with the run: {actor_status:?}\n{}",
+        actor.log_tail(20)
+    );
+}
+
+#[test]
+fn a_learner_killed_while_writing_a_checkpoint_resumes_from_the_previous_one() {
+    let dir = TempDir::new("fault-checkpoint");
+    let run_dir = dir.path().join("run");
+    let run = run_dir.display().to_string();
+    let settings = [
+        &["--max-seconds", "300"],
+        QUICK_RUN,
+        &["--set", "run.checkpoint_every_updates=1"],
+    ]
+    .concat();
+    let (mut learner, endpoints) = start_learner(&run_dir, dir.path(), &settings);
+    let mut actor = start_actor(&endpoints, dir.path(), "actor", &[]);
+    let trained = wait_until(Duration::from_secs(120), || version(&endpoints) >= 2.0);
+    assert!(trained, "no versions\n{}", learner.log_tail(30));
+    // A clean stop leaves a complete final checkpoint.
+    learner.signal(libc::SIGTERM);
+    assert!(learner.wait_exit(Duration::from_secs(60)).is_some());
+    assert!(actor.wait_exit(Duration::from_secs(30)).is_some());
+    let complete = *checkpoint_versions(&run_dir).last().expect("a checkpoint");
+
+    // Resume with the test hook that stalls every checkpoint after its first file: the next
+    // checkpoint is caught half-written.
+    let (mut stalled, endpoints) = start_learner_with_env(
+        &run_dir,
+        dir.path(),
+        &["--resume", &run, "--max-seconds", "300"],
+        &[("JUNCTION_TEST_CHECKPOINT_STALL_MS", "120000")],
+    );
+    let _actor = start_actor(&endpoints, dir.path(), "actor-2", &[]);
+    let checkpoints = run_dir.join("checkpoints");
+    let half_written = || {
+        std::fs::read_dir(&checkpoints)
+            .map(|entries| {
+                entries.flatten().any(|e| {
+                    e.file_name().to_string_lossy().starts_with(".tmp-")
+                        && e.path().join("policy.safetensors").exists()
+                        && !e.path().join("meta.json").exists()
+                })
+            })
+            .unwrap_or(false)
+    };
+    assert!(
+        wait_until(Duration::from_secs(120), half_written),
+        "no checkpoint write began\n{}",
+        stalled.log_tail(30)
+    );
+    stalled.signal(libc::SIGKILL);
+    assert!(stalled.wait_exit(Duration::from_secs(10)).is_some());
+    assert!(half_written(), "the half-written checkpoint is gone");
+    assert_eq!(
+        checkpoint_versions(&run_dir).last(),
+        Some(&complete),
+        "a half-written checkpoint counts as complete"
+    );
+
+    // The previous checkpoint loads; the leftover is cleared; training goes on.
+    let (mut resumed, endpoints) = start_learner(
+        &run_dir,
+        dir.path(),
+        &["--resume", &run, "--max-seconds", "300"],
+    );
+    assert_eq!(
+        resumed_version(&resumed),
+        Some(complete),
+        "{}",
+        resumed.log_tail(30)
+    );
+    assert!(!half_written(), "the interrupted write was not cleared");
+    let _actor = start_actor(&endpoints, dir.path(), "actor-3", &[]);
+    let advanced = wait_until(Duration::from_secs(120), || {
+        version(&endpoints) >= complete as f64 + 2.0
+    });
+    assert!(advanced, "{}", resumed.log_tail(30));
+    resumed.signal(libc::SIGTERM);
+    assert!(
+        resumed
+            .wait_exit(Duration::from_secs(60))
+            .is_some_and(|s| s.success())
+    );
+}
