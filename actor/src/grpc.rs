@@ -12,7 +12,7 @@ use tonic::transport::{Channel, Endpoint};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::PROTOCOL_VERSION;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::{self, Policy};
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
@@ -225,12 +225,16 @@ fn rollout_loop(
 ) -> anyhow::Result<()> {
     let _span =
         tracing::info_span!("rollout", actor = %actor_id, scenario = %scenario.name).entered();
-    let load = |w: &proto::PolicyWeights| -> anyhow::Result<GaussianPolicy> {
-        let (policy, meta) = GaussianPolicy::from_bytes(&w.data, tch::Device::Cpu)
-            .context("decoding policy weights")?;
-        if meta.obs_layout_version != OBS_LAYOUT_VERSION || policy.obs_dim() != scenario.obs_dim() {
+    // The blob says which kind of policy it is (Gaussian or DQN's Q-policy): no flag needed.
+    let load = |w: &proto::PolicyWeights| -> anyhow::Result<Box<dyn Policy>> {
+        let (policy, meta) =
+            policy::decode(&w.data, tch::Device::Cpu).context("decoding policy weights")?;
+        if meta.obs_layout_version != OBS_LAYOUT_VERSION
+            || policy.obs_dim() != scenario.obs_dim()
+            || policy.action_dim() != ACTION_DIM
+        {
             bail!(
-                "policy v{} was trained for another observation layout or size",
+                "policy v{} was trained for another observation layout or size or action size",
                 w.version
             );
         }

@@ -99,7 +99,8 @@ struct RenderArgs {
     /// tiny-straight) or a scenario TOML file.
     #[arg(long, default_value = "intersection")]
     scenario: String,
-    /// Drive every agent with this policy's mean action: a checkpoint directory
+    /// Drive every agent with this policy's deterministic action (a Gaussian policy's mean, a
+    /// DQN policy's greedy grid point): a checkpoint directory
     /// (runs/<run>/checkpoints/ckpt-N), a run directory (its newest checkpoint) or a
     /// policy.safetensors file. Without it the scripted autopilot drives.
     #[arg(long, value_name = "DIR")]
@@ -181,7 +182,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
                 std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
             let policy = replay::load_policy(&bytes, &scenario)
                 .with_context(|| format!("loading the policy in {}", file.display()))?;
-            tracing::info!(policy = %file.display(), "driving with the policy's mean action");
+            tracing::info!(policy = %file.display(), "driving with the policy's deterministic action");
             Driver::Policy(policy)
         }
         None => Driver::Autopilot,

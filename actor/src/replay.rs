@@ -1,5 +1,6 @@
 //! `actor render`: one episode of the pure simulator, driven by the scripted autopilot or by a
-//! checkpoint's policy (its mean action, so a replay is deterministic), drawn frame by frame
+//! checkpoint's policy (its deterministic action: a Gaussian's mean, a Q-policy's greedy grid
+//! point, so a replay is deterministic), drawn frame by frame
 //! and written as an animated GIF and optionally one PNG per frame.
 
 use std::collections::{BTreeMap, HashMap};
@@ -11,7 +12,7 @@ use anyhow::{Context, bail, ensure};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::{self, Policy};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::render::{Flashes, Frame, Renderer};
@@ -32,8 +33,8 @@ const QUANTISE_SPEED: i32 = 10;
 pub enum Driver {
     /// The scripted pure-pursuit driver of `actor bench`.
     Autopilot,
-    /// A trained policy's mean action for every agent.
-    Policy(GaussianPolicy),
+    /// A trained policy's deterministic action for every agent.
+    Policy(Box<dyn Policy>),
 }
 
 impl Driver {
@@ -56,9 +57,7 @@ impl Driver {
         for &slot in &slots {
             batch.extend_from_slice(&scene.observations()[slot * obs_dim..(slot + 1) * obs_dim]);
         }
-        // Zero noise: the Gaussian's mean.
-        let noise = vec![0.0; slots.len() * ACTION_DIM];
-        let (actions, _) = policy.act(&batch, &noise).context("policy inference")?;
+        let actions = policy.deterministic(&batch).context("policy inference")?;
         for (row, &slot) in slots.iter().enumerate() {
             out[slot * ACTION_DIM..(slot + 1) * ACTION_DIM]
                 .copy_from_slice(&actions[row * ACTION_DIM..(row + 1) * ACTION_DIM]);
@@ -102,9 +101,9 @@ pub fn policy_file(path: &Path) -> anyhow::Result<PathBuf> {
 }
 
 /// Decodes a policy blob and checks it was trained on this scenario's observations.
-pub fn load_policy(bytes: &[u8], scenario: &ScenarioConfig) -> anyhow::Result<GaussianPolicy> {
+pub fn load_policy(bytes: &[u8], scenario: &ScenarioConfig) -> anyhow::Result<Box<dyn Policy>> {
     let (policy, meta) =
-        GaussianPolicy::from_bytes(bytes, tch::Device::Cpu).context("decoding policy weights")?;
+        policy::decode(bytes, tch::Device::Cpu).context("decoding policy weights")?;
     ensure!(
         meta.obs_layout_version == OBS_LAYOUT_VERSION,
         "the policy (v{}) was trained on observation layout {}, this actor produces layout {}",
@@ -315,6 +314,8 @@ pub fn write_png(path: &Path, frame: &Frame) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use junction_common::policy::GaussianPolicy;
+    use junction_common::q_policy::{ActionGrid, QPolicy};
     use junction_common::scenarios;
 
     /// A fresh directory under the system's temporary directory.
@@ -403,6 +404,36 @@ mod tests {
             error.to_string().contains("expects 50 observation values"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn a_q_policy_drives_its_greedy_grid_points_even_when_it_explores_in_training() {
+        let scenario = scenarios::load("tiny-straight").unwrap();
+        let grid = ActionGrid::new(vec![-0.5, 0.0, 0.5], vec![0.0, 1.0]).unwrap();
+        let mut q = QPolicy::new(tch::Device::Cpu, scenario.obs_dim() as i64, &[8], grid);
+        // Actors would explore on every step; a replay must not.
+        q.set_epsilon(1.0);
+        let blob = Policy::to_bytes(&q, 3).unwrap();
+        let driver = Driver::Policy(load_policy(&blob, &scenario).unwrap());
+        let scene = Scene::new(&scenario, 1).unwrap();
+        let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
+        driver.actions(&scene, &mut actions).unwrap();
+        let obs = &scene.observations()[..scene.obs_dim()];
+        assert_eq!(
+            &actions[..ACTION_DIM],
+            q.deterministic(obs).unwrap().as_slice()
+        );
+        assert!(q.grid().index_of(&actions[..ACTION_DIM]).is_some());
+        let frames = || {
+            let mut pixels = Vec::new();
+            run(&scenario, &driver, &options(30, 10), |_, frame| {
+                pixels.extend_from_slice(frame.pixels());
+                Ok(())
+            })
+            .unwrap();
+            pixels
+        };
+        assert_eq!(frames(), frames(), "a replay is deterministic");
     }
 
     #[test]

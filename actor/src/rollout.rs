@@ -5,12 +5,11 @@ use std::time::Instant;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::Policy;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::WeightsError;
 
@@ -59,28 +58,29 @@ pub struct RolloutWorker {
     /// Seeds the scenes; a new stream after every rebuild, so rebuilt scenes do not replay.
     scene_seed: u64,
     scenes: Vec<Scene>,
-    policy: GaussianPolicy,
+    /// Whatever the learner broadcast: a Gaussian (PPO) or an ε-greedy Q-policy (DQN).
+    policy: Box<dyn Policy>,
     policy_version: u64,
     fragment_length: usize,
     rng: ChaCha8Rng,
     actor_id: String,
     sequence: u64,
-    /// Reused per step: observations of all live agents, their noise, and where each row goes.
+    /// Reused per step: observations of all live agents and where each row goes.
     batch_obs: Vec<f32>,
-    batch_noise: Vec<f32>,
     batch_rows: Vec<(usize, usize)>,
     scene_actions: Vec<Vec<f32>>,
     scene_log_probs: Vec<Vec<f32>>,
 }
 
 impl RolloutWorker {
-    /// `seed` drives every scene (scene `k` gets a seed derived from it) and the action noise.
+    /// `seed` drives every scene (scene `k` gets a seed derived from it) and the policy's
+    /// random choices.
     pub fn new(
         scenario: &ScenarioConfig,
         scenes: usize,
         seed: u64,
         fragment_length: usize,
-        policy: GaussianPolicy,
+        policy: Box<dyn Policy>,
         policy_version: u64,
         actor_id: String,
     ) -> Result<Self, SimError> {
@@ -96,7 +96,6 @@ impl RolloutWorker {
             actor_id,
             sequence: 0,
             batch_obs: Vec::new(),
-            batch_noise: Vec::new(),
             batch_rows: Vec::new(),
             scene_actions: Vec::new(),
             scene_log_probs: Vec::new(),
@@ -145,7 +144,7 @@ impl RolloutWorker {
     }
 
     /// Switches to new weights; takes effect from the next fragment on.
-    pub fn set_policy(&mut self, policy: GaussianPolicy, version: u64) {
+    pub fn set_policy(&mut self, policy: Box<dyn Policy>, version: u64) {
         self.policy = policy;
         self.policy_version = version;
     }
@@ -232,15 +231,10 @@ impl RolloutWorker {
             actions.fill(0.0);
             log_probs.fill(0.0);
         }
-        self.batch_noise.clear();
-        let rng = &mut self.rng;
-        self.batch_noise.extend(
-            (0..self.batch_rows.len() * ACTION_DIM).map(|_| -> f32 { StandardNormal.sample(rng) }),
-        );
         let (actions, log_probs) = if self.batch_rows.is_empty() {
             (Vec::new(), Vec::new())
         } else {
-            self.policy.act(&self.batch_obs, &self.batch_noise)?
+            self.policy.sample(&self.batch_obs, &mut self.rng)?
         };
         for (row, &(k, slot)) in self.batch_rows.iter().enumerate() {
             self.scene_actions[k][slot * ACTION_DIM..(slot + 1) * ACTION_DIM]
@@ -273,6 +267,7 @@ pub fn derive_seed(seed: u64, stream: u64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use junction_common::policy::GaussianPolicy;
 
     /// Two scenes of an 8-agent intersection driven by `policy` (serialised weights).
     fn worker(seed: u64, policy: &[u8]) -> RolloutWorker {
@@ -280,7 +275,7 @@ mod tests {
             agents: 8,
             ..ScenarioConfig::default()
         };
-        let (policy, _) = GaussianPolicy::from_bytes(policy, tch::Device::Cpu).unwrap();
+        let (policy, _) = junction_common::policy::decode(policy, tch::Device::Cpu).unwrap();
         RolloutWorker::new(&scenario, 2, seed, 40, policy, 0, "test".into()).unwrap()
     }
 

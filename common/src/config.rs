@@ -50,6 +50,7 @@ pub struct RunConfig {
     pub rollout: RolloutConfig,
     pub ppo: PpoConfig,
     pub ccppo: CcppoConfig,
+    pub dqn: DqnConfig,
     pub lcf: LcfConfig,
     pub safety: SafetyConfig,
     pub learner: LearnerSection,
@@ -247,6 +248,80 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
 }
 
+/// `learner.algo = "dqn"`: double DQN over a grid of actions (defaults and their sources in
+/// `default.toml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DqnConfig {
+    /// The action grid: every steering value with every throttle value.
+    pub steering: Vec<f32>,
+    pub throttle: Vec<f32>,
+    pub learning_rate: f64,
+    pub adam_eps: f64,
+    pub gamma: f32,
+    pub batch_size: usize,
+    pub replay_capacity: usize,
+    pub learning_starts: usize,
+    pub replay_ratio: f32,
+    pub target_update_gradient_steps: u64,
+    pub huber_delta: f64,
+    pub max_grad_norm: f64,
+    pub epsilon_start: f64,
+    pub epsilon_end: f64,
+    pub epsilon_decay_agent_steps: u64,
+    pub train_batch_env_steps: usize,
+    pub hidden: Vec<i64>,
+    pub normalize_observations: bool,
+    pub checkpoint_replay: bool,
+}
+
+impl DqnConfig {
+    /// What is wrong with the section, one line per problem.
+    fn problems(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        if crate::q_policy::ActionGrid::new(self.steering.clone(), self.throttle.clone()).is_err() {
+            problems.push(format!(
+                "dqn.steering and dqn.throttle must each list values in [-1, 1], strictly \
+                 increasing, at most {} grid points in all",
+                crate::q_policy::MAX_GRID_ACTIONS
+            ));
+        }
+        if !(self.learning_rate > 0.0 && self.learning_rate.is_finite()) {
+            problems.push("dqn.learning_rate must be a positive number".into());
+        }
+        if !(0.0..=1.0).contains(&self.gamma) {
+            problems.push("dqn.gamma must be in [0, 1]".into());
+        }
+        if self.batch_size == 0
+            || self.replay_capacity == 0
+            || self.target_update_gradient_steps == 0
+            || self.train_batch_env_steps == 0
+        {
+            problems.push(
+                "dqn.batch_size, dqn.replay_capacity, dqn.target_update_gradient_steps and \
+                 dqn.train_batch_env_steps must be > 0"
+                    .into(),
+            );
+        }
+        if !(self.replay_ratio > 0.0 && self.replay_ratio.is_finite())
+            || !(self.huber_delta > 0.0)
+            || !(self.max_grad_norm >= 0.0)
+        {
+            problems.push(
+                "dqn.replay_ratio and dqn.huber_delta must be > 0, dqn.max_grad_norm >= 0".into(),
+            );
+        }
+        let probability = 0.0..=1.0;
+        if !probability.contains(&self.epsilon_start) || !probability.contains(&self.epsilon_end) {
+            problems.push("dqn.epsilon_start and dqn.epsilon_end must be in [0, 1]".into());
+        }
+        if self.hidden.is_empty() || self.hidden.iter().any(|&h| h <= 0) {
+            problems.push("dqn.hidden must list at least one positive layer size".into());
+        }
+        problems
+    }
+}
+
 /// Safe RL for every PPO algorithm: a cost critic and a Lagrange multiplier on the episode cost.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -303,6 +378,8 @@ pub enum AlgoKind {
     CcppoMf,
     /// Centralised-critic PPO, critic on own obs + k nearest neighbours' obs and actions.
     CcppoConcat,
+    /// Double DQN over a grid of actions (`[dqn]`), acting ε-greedily.
+    Dqn,
 }
 
 impl AlgoKind {
@@ -312,6 +389,7 @@ impl AlgoKind {
             AlgoKind::Cl => "cl",
             AlgoKind::CcppoMf => "ccppo-mf",
             AlgoKind::CcppoConcat => "ccppo-concat",
+            AlgoKind::Dqn => "dqn",
         }
     }
 }
@@ -458,7 +536,24 @@ impl RunConfig {
             problems.push("run.progress_interval_s must be > 0".to_string());
         }
         problems.extend(self.curriculum.problems());
+        problems.extend(self.dqn.problems());
+        if self.learner.algo == AlgoKind::Dqn && self.safety.mode != SafetyMode::Off {
+            problems.push(
+                "safety.mode = \"lagrangian\" is PPO-Lagrangian and works with the PPO algorithms \
+                 only; learner.algo = \"dqn\" needs safety.mode = \"off\""
+                    .into(),
+            );
+        }
         join_problems(problems)
+    }
+
+    /// Scene steps of accepted fragments that trigger an update: `dqn.train_batch_env_steps`
+    /// for DQN, `ppo.train_batch_env_steps` for the PPO algorithms.
+    pub fn train_batch_env_steps(&self) -> usize {
+        match self.learner.algo {
+            AlgoKind::Dqn => self.dqn.train_batch_env_steps,
+            _ => self.ppo.train_batch_env_steps,
+        }
     }
 }
 

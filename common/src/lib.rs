@@ -6,6 +6,7 @@ pub mod config;
 pub mod fragment;
 pub mod lcf;
 pub mod policy;
+pub mod q_policy;
 pub mod scenarios;
 pub mod spec;
 pub mod telemetry;

@@ -43,8 +43,8 @@ enum Command {
     /// Print the effective configuration as TOML (or, with --defaults, the annotated defaults).
     Config(ConfigArgs),
     /// Time the training update alone on synthetic fragments of the run's shape (scenario
-    /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update) and print one
-    /// JSON line with samples_per_s.
+    /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update, or
+    /// dqn.train_batch_env_steps for dqn) and print one JSON line with samples_per_s.
     Bench(BenchArgs),
 }
 
@@ -52,7 +52,8 @@ enum Command {
 struct BenchArgs {
     #[command(flatten)]
     source: ConfigSource,
-    /// Algorithm to time [config: learner.algo, default ippo].
+    /// Algorithm to time: ippo, cl, ccppo-mf, ccppo-concat or dqn [config: learner.algo,
+    /// default ippo].
     #[arg(long)]
     algo: Option<String>,
     /// Timed updates (after one untimed warm-up update).
@@ -176,7 +177,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let mut algorithm = algo::build(&config, device);
+    let mut algorithm = algo::build(&config, device).context("building the algorithm")?;
     let report = junction_learner::bench::run(
         &config,
         algorithm.as_mut(),
@@ -263,7 +264,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let mut algorithm = algo::build(&config, device);
+    let mut algorithm = algo::build(&config, device).context("building the algorithm")?;
     let progress = match &resume {
         Some(checkpoint) => {
             if checkpoint.meta.algorithm != algorithm.name() {

@@ -17,6 +17,8 @@ pub const REJECT_DECODE: &str = "decode";
 pub const REJECT_SCENARIO: &str = "scenario";
 /// `reason` of accepted fragments not trained on: older than `max_policy_lag` versions.
 pub const DROP_STALE: &str = "stale";
+/// `reason` of accepted fragments not trained on: actions off the DQN's action grid.
+pub const DROP_OFF_GRID: &str = "off_grid";
 pub const TRANSPORT_GRPC: &str = "grpc";
 
 pub struct LearnerMetrics {
@@ -61,6 +63,9 @@ pub struct LearnerMetrics {
     grad_norm: Gauge,
     curriculum_stage: IntGauge,
     curriculum_agents: IntGauge,
+    q_mean: Gauge,
+    epsilon: Gauge,
+    replay_transitions: IntGauge,
 }
 
 impl LearnerMetrics {
@@ -140,7 +145,7 @@ impl LearnerMetrics {
             )?,
             fragments_dropped: counter_vec(
                 names::LEARNER_FRAGMENTS_DROPPED,
-                "Accepted fragments not trained on, by reason (stale: older than max_policy_lag).",
+                "Accepted fragments not trained on, by reason (stale: older than max_policy_lag; off_grid: actions off the DQN's action grid).",
                 &["reason"],
             )?,
             samples_trained: counter(
@@ -259,6 +264,18 @@ impl LearnerMetrics {
                 names::LEARNER_CURRICULUM_AGENTS,
                 "Learning agents per scene that actors are told to simulate.",
             )?,
+            q_mean: gauge(
+                names::LEARNER_Q_MEAN,
+                "DQN: mean Q(s, a) of the transitions sampled in the last update (0 for PPO).",
+            )?,
+            epsilon: gauge(
+                names::LEARNER_EPSILON,
+                "DQN: exploration rate epsilon broadcast with the newest policy (0 for PPO).",
+            )?,
+            replay_transitions: int_gauge(
+                names::LEARNER_REPLAY_TRANSITIONS,
+                "DQN: agent transitions held in the replay buffer (0 for PPO).",
+            )?,
             registry,
         })
     }
@@ -272,7 +289,9 @@ impl LearnerMetrics {
         {
             self.fragments_rejected.with_label_values(&[reason]);
         }
-        self.fragments_dropped.with_label_values(&[DROP_STALE]);
+        for reason in [DROP_STALE, DROP_OFF_GRID] {
+            self.fragments_dropped.with_label_values(&[reason]);
+        }
         self.transport_bytes.with_label_values(&[TRANSPORT_GRPC]);
         for outcome in Outcome::ALL {
             self.episodes
@@ -327,6 +346,13 @@ impl LearnerMetrics {
         self.clip_fraction.set(stats.clip_fraction);
         self.explained_variance.set(stats.explained_variance);
         self.grad_norm.set(stats.grad_norm);
+        self.q_mean.set(stats.q_mean);
+        self.epsilon.set(stats.epsilon);
+        self.replay_transitions
+            .set(i64::try_from(stats.replay_transitions).unwrap_or(i64::MAX));
+        self.fragments_dropped
+            .with_label_values(&[DROP_OFF_GRID])
+            .inc_by(stats.off_grid_fragments as u64);
     }
 
     pub fn record_stage(&self, stage: Stage) {

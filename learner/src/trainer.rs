@@ -165,7 +165,7 @@ impl Trainer {
                 Ok(None) => break,
                 Err(_) => {}
             }
-            if pending_env_steps >= config.ppo.train_batch_env_steps {
+            if pending_env_steps >= config.train_batch_env_steps() {
                 self.update(&pending)?;
                 pending.clear();
                 pending_env_steps = 0;
@@ -199,6 +199,16 @@ impl Trainer {
             }
         };
         let seconds = started.elapsed().as_secs_f64();
+        if stats.off_grid_fragments > 0 {
+            static LOGGED: std::sync::Once = std::sync::Once::new();
+            LOGGED.call_once(|| {
+                tracing::warn!(
+                    fragments = stats.off_grid_fragments,
+                    "dropped fragments whose actions are off the action grid (counted as \
+                     fragments_dropped_total{{reason=\"off_grid\"}}; further drops are only counted)"
+                );
+            });
+        }
         self.progress.version += 1;
         self.progress.updates += 1;
         self.progress.samples_trained += stats.samples_trained as u64;

@@ -5,9 +5,11 @@ pub mod batch;
 pub mod ccppo_concat;
 pub mod ccppo_mf;
 pub mod cl;
+pub mod dqn;
 pub mod gae;
 pub mod ippo;
 pub mod ppo;
+pub mod replay;
 pub mod safety;
 pub mod shared_ppo;
 
@@ -15,11 +17,13 @@ use tch::{Device, Tensor};
 
 use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::Policy;
+use junction_common::q_policy::GridError;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::{Decoded, WeightsError};
 
-/// Diagnostics of one policy update, averaged over its minibatches.
+/// Diagnostics of one policy update, averaged over its minibatches (DQN: over its gradient
+/// steps; its TD loss is `value_loss`).
 #[derive(Debug, Clone, Default)]
 pub struct UpdateStats {
     pub agent_steps: usize,
@@ -41,6 +45,14 @@ pub struct UpdateStats {
     pub lagrange_multiplier: f64,
     /// Minibatches skipped because their loss was NaN or infinite.
     pub skipped_minibatches: usize,
+    /// DQN: mean Q(s, a) of the sampled transitions (0 for PPO).
+    pub q_mean: f64,
+    /// DQN: the exploration rate broadcast with the new weights (0 for PPO).
+    pub epsilon: f64,
+    /// DQN: transitions in the replay buffer after the update (0 for PPO).
+    pub replay_transitions: usize,
+    /// Fragments not trained on because their actions are off the algorithm's action grid.
+    pub off_grid_fragments: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -51,6 +63,8 @@ pub enum AlgoError {
     Weights(#[from] WeightsError),
     #[error("an update needs at least one fragment with an alive agent")]
     EmptyBatch,
+    #[error("{0}")]
+    Grid(#[from] GridError),
 }
 
 /// A curriculum stage: its index and the learning agents each scene simulates in it.
@@ -64,7 +78,7 @@ pub struct Stage {
 pub trait Algorithm {
     fn name(&self) -> &'static str;
     /// The policy actors run (broadcast after every update).
-    fn policy(&self) -> &GaussianPolicy;
+    fn policy(&self) -> &dyn Policy;
     /// One update on a batch of fragments.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;
     /// Everything besides the policy needed to resume exactly (critics, optimiser state).
@@ -84,7 +98,7 @@ pub trait Algorithm {
 }
 
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
-pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
+pub fn build(config: &RunConfig, device: Device) -> Result<Box<dyn Algorithm + Send>, AlgoError> {
     let (ppo, obs_dim, seed) = (&config.ppo, config.scenario.obs_dim(), config.run.seed);
     let (lcf, safety) = (&config.lcf, &config.safety);
     let ippo = || {
@@ -92,7 +106,7 @@ pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
             .with_coordination(lcf)
             .with_safety(safety)
     };
-    match config.learner.algo {
+    Ok(match config.learner.algo {
         AlgoKind::Ippo => Box::new(ippo()),
         AlgoKind::Cl => Box::new(cl::Cl::new(ippo(), cl::Curriculum::new(&config.curriculum))),
         AlgoKind::CcppoMf => Box::new(
@@ -112,5 +126,8 @@ pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
             .with_coordination(lcf)
             .with_safety(safety),
         ),
-    }
+        AlgoKind::Dqn => {
+            Box::new(dqn::Dqn::new(&config.dqn, obs_dim, device, seed)?.with_coordination(lcf))
+        }
+    })
 }
