@@ -410,7 +410,13 @@ mod tests {
     fn a_q_policy_drives_its_greedy_grid_points_even_when_it_explores_in_training() {
         let scenario = scenarios::load("tiny-straight").unwrap();
         let grid = ActionGrid::new(vec![-0.5, 0.0, 0.5], vec![0.0, 1.0]).unwrap();
-        let mut q = QPolicy::new(tch::Device::Cpu, scenario.obs_dim() as i64, &[8], grid);
+        let mut q = QPolicy::new(
+            tch::Device::Cpu,
+            scenario.obs_dim() as i64,
+            &[8],
+            grid,
+            true,
+        );
         // Actors would explore on every step; a replay must not.
         q.set_epsilon(1.0);
         let blob = Policy::to_bytes(&q, 3).unwrap();

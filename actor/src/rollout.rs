@@ -333,6 +333,52 @@ mod tests {
     }
 
     #[test]
+    fn a_q_policy_blob_makes_the_actor_act_epsilon_greedily_on_its_grid() {
+        use junction_common::q_policy::{ActionGrid, QPolicy};
+        let obs_dim = ScenarioConfig::default().obs_dim() as i64;
+        let grid = ActionGrid::new(vec![-0.5, 0.0, 0.5], vec![-1.0, 1.0]).unwrap();
+        let mut q = QPolicy::new(tch::Device::Cpu, obs_dim, &[16], grid.clone(), true);
+        q.set_epsilon(0.3);
+        let blob = Policy::to_bytes(&q, 0).unwrap();
+        let (fragments, _) = worker(4, &blob).collect().unwrap();
+        assert_eq!(
+            fragments,
+            worker(4, &blob).collect().unwrap().0,
+            "deterministic"
+        );
+        // ln(ε/|A| + (1 − ε)) for the greedy choice, ln(ε/|A|) for any other.
+        let greedy_lp = (0.3f64 / 6.0 + 0.7).ln() as f32;
+        let other_lp = (0.3f64 / 6.0).ln() as f32;
+        let (mut explored, mut cells) = (0, 0);
+        for f in &fragments {
+            f.validate(Some((f.obs_dim, ACTION_DIM))).unwrap();
+            for cell in (0..f.steps * f.agents).filter(|&c| f.alive[c]) {
+                let action = &f.actions[cell * ACTION_DIM..(cell + 1) * ACTION_DIM];
+                assert!(
+                    grid.index_of(action).is_some(),
+                    "{action:?} is off the grid"
+                );
+                let obs = &f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim];
+                let greedy = q.deterministic(obs).unwrap();
+                let lp = f.log_probs[cell];
+                if action == greedy.as_slice() {
+                    assert_eq!(lp, greedy_lp);
+                } else {
+                    assert_eq!(lp, other_lp);
+                    explored += 1;
+                }
+                cells += 1;
+            }
+        }
+        // About ε · 5/6 of the cells leave the greedy action.
+        let share = explored as f64 / cells as f64;
+        assert!(
+            (0.15..0.35).contains(&share),
+            "{explored} of {cells} explored"
+        );
+    }
+
+    #[test]
     fn rebuilt_scenes_are_deterministic_and_freshly_seeded() {
         let policy = random_policy();
         let run = |seed| {

@@ -271,6 +271,7 @@ pub struct DqnConfig {
     pub epsilon_decay_agent_steps: u64,
     pub train_batch_env_steps: usize,
     pub hidden: Vec<i64>,
+    pub dueling: bool,
     pub normalize_observations: bool,
     pub checkpoint_replay: bool,
 }
@@ -947,6 +948,48 @@ mod tests {
         }
         let one = RunConfig::load(None, &["curriculum.stages=[1.0]".into()]).unwrap();
         assert_eq!(one.curriculum.stages, vec![1.0]);
+    }
+
+    #[test]
+    fn dqn_defaults_use_metadrive_grid_and_bad_dqn_settings_are_refused() {
+        let c = RunConfig::load(None, &["learner.algo=\"dqn\"".into()]).unwrap();
+        assert_eq!(c.dqn.steering, vec![-1.0, -0.5, 0.0, 0.5, 1.0]);
+        assert_eq!(c.dqn.throttle, c.dqn.steering);
+        assert_eq!(c.train_batch_env_steps(), c.dqn.train_batch_env_steps);
+        assert_eq!(
+            RunConfig::default().train_batch_env_steps(),
+            c.ppo.train_batch_env_steps
+        );
+        for bad in [
+            "dqn.steering=[]",
+            "dqn.steering=[0.5, 0.0]",
+            "dqn.throttle=[0.0, 2.0]",
+            "dqn.batch_size=0",
+            "dqn.replay_capacity=0",
+            "dqn.replay_ratio=0.0",
+            "dqn.epsilon_end=1.5",
+            "dqn.gamma=1.1",
+            "dqn.hidden=[]",
+            "dqn.target_update_gradient_steps=0",
+        ] {
+            let err = RunConfig::load(None, &[bad.into()]);
+            assert!(
+                matches!(err, Err(ConfigError::Invalid(_))),
+                "{bad} was accepted: {err:?}"
+            );
+        }
+        // PPO-Lagrangian is PPO's; DQN says so instead of ignoring it.
+        let err = RunConfig::load(
+            None,
+            &[
+                "learner.algo=\"dqn\"".into(),
+                "safety.mode=\"lagrangian\"".into(),
+            ],
+        );
+        assert!(
+            matches!(&err, Err(ConfigError::Invalid(m)) if m.contains("PPO")),
+            "{err:?}"
+        );
     }
 
     #[test]

@@ -13,7 +13,7 @@ use std::collections::BTreeMap;
 
 use rand::{Rng, RngCore};
 use tch::nn::{self, Module};
-use tch::{Device, Tensor};
+use tch::{Device, Kind, Tensor};
 
 use crate::policy::{
     KIND_KEY, Mlp, ObsNormTensors, ObsNormalizer, Policy, PolicyMeta, hidden_from_meta,
@@ -107,6 +107,9 @@ pub struct QPolicy {
     net: Mlp,
     norm: ObsNormTensors,
     grid: ActionGrid,
+    /// Dueling head (Wang et al. 2016): the network outputs V(s) and A(s, ·), and
+    /// Q = V + A − mean(A).
+    dueling: bool,
     /// Probability of a uniformly random grid action instead of the greedy one.
     epsilon: f64,
     obs_dim: i64,
@@ -117,16 +120,24 @@ impl QPolicy {
     /// [`KIND_KEY`] value of its blobs.
     pub const KIND: &'static str = "q";
 
-    pub fn new(device: Device, obs_dim: i64, hidden: &[i64], grid: ActionGrid) -> Self {
+    pub fn new(
+        device: Device,
+        obs_dim: i64,
+        hidden: &[i64],
+        grid: ActionGrid,
+        dueling: bool,
+    ) -> Self {
         let vs = nn::VarStore::new(device);
         let root = vs.root();
-        let net = Mlp::new(&root / "q", obs_dim, hidden, grid.len() as i64, 1.0);
+        let outputs = grid.len() as i64 + i64::from(dueling);
+        let net = Mlp::new(&root / "q", obs_dim, hidden, outputs, 1.0);
         let norm = ObsNormTensors::new(&root, obs_dim);
         QPolicy {
             vs,
             net,
             norm,
             grid,
+            dueling,
             epsilon: 0.0,
             obs_dim,
             hidden: hidden.to_vec(),
@@ -169,7 +180,13 @@ impl QPolicy {
 
     /// Q-values [rows, grid.len()] of normalised observations.
     pub fn q_values(&self, obs_normalized: &Tensor) -> Tensor {
-        self.net.forward(obs_normalized)
+        let out = self.net.forward(obs_normalized);
+        if !self.dueling {
+            return out;
+        }
+        let value = out.narrow(-1, 0, 1);
+        let advantage = out.narrow(-1, 1, self.grid.len() as i64);
+        value + &advantage - advantage.mean_dim(-1, true, Kind::Float)
     }
 
     /// Copies every variable (network and normaliser) of `source`, e.g. to sync a target
@@ -212,12 +229,13 @@ impl QPolicy {
         let hidden = hidden_from_meta(&decoded)?;
         let grid = ActionGrid::from_meta(&decoded)?;
         let epsilon: f64 = decoded.meta("epsilon")?;
+        let dueling: bool = decoded.meta("dueling")?;
         if !(0.0..=1.0).contains(&epsilon) {
             return Err(WeightsError::Metadata {
                 key: "epsilon".into(),
             });
         }
-        let mut policy = QPolicy::new(device, obs_dim, &hidden, grid);
+        let mut policy = QPolicy::new(device, obs_dim, &hidden, grid, dueling);
         policy.epsilon = epsilon;
         weights::load_var_store(&policy.vs, &mut decoded)?;
         Ok((policy, meta))
@@ -308,6 +326,7 @@ impl Policy for QPolicy {
                 ActionGrid::to_meta(&self.grid.throttle),
             ),
             ("epsilon".to_string(), self.epsilon.to_string()),
+            ("dueling".to_string(), self.dueling.to_string()),
         ]);
         weights::encode(&refs, metadata)
     }
@@ -353,7 +372,7 @@ mod tests {
     #[test]
     fn epsilon_greedy_acts_on_the_grid_with_the_behaviour_log_probability() {
         tch::manual_seed(4);
-        let mut q = QPolicy::new(Device::Cpu, 3, &[8], metadrive_grid());
+        let mut q = QPolicy::new(Device::Cpu, 3, &[8], metadrive_grid(), false);
         let obs: Vec<f32> = (0..300).map(|i| (i % 7) as f32 / 7.0).collect();
         let greedy = q.deterministic(&obs).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
@@ -393,7 +412,7 @@ mod tests {
     #[test]
     fn the_blob_says_its_kind_and_round_trips_grid_epsilon_and_weights() {
         tch::manual_seed(5);
-        let mut q = QPolicy::new(Device::Cpu, 4, &[8, 8], metadrive_grid());
+        let mut q = QPolicy::new(Device::Cpu, 4, &[8, 8], metadrive_grid(), true);
         let mut stats = ObsNormalizer::new(4);
         stats.update(&[0.0, 1.0, 2.0, 3.0, 1.0, 1.0, 1.0, 1.0]);
         q.set_obs_stats(&stats);
@@ -433,13 +452,37 @@ mod tests {
                 vec![-1.0, -0.25, 0.0, 0.25, 1.0],
             )
             .unwrap(),
+            true,
         );
         assert!(shifted.load_bytes(&bytes).is_err());
     }
 
     #[test]
+    fn a_dueling_head_adds_the_state_value_to_centred_advantages() {
+        tch::manual_seed(6);
+        let x = Tensor::from_slice(&[0.1f32, -0.4, 0.8, 0.3, 0.0, -1.0]).reshape([2, 3]);
+        let dueling = QPolicy::new(Device::Cpu, 3, &[8], metadrive_grid(), true);
+        let out = dueling.net.forward(&x);
+        assert_eq!(out.size(), [2, 26], "V and 25 advantages");
+        let q = dueling.q_values(&x);
+        let (value, advantage) = (out.narrow(-1, 0, 1), out.narrow(-1, 1, 25));
+        let expected = &value + &advantage - advantage.mean_dim(-1, true, Kind::Float);
+        assert!(bool::try_from((&q - expected).abs().max().le(1e-6)).unwrap());
+        // Q's mean over actions is V.
+        let mean_q = Vec::<f32>::try_from(q.mean_dim(-1, false, Kind::Float)).unwrap();
+        let v = Vec::<f32>::try_from(value.squeeze_dim(-1)).unwrap();
+        assert!(mean_q.iter().zip(&v).all(|(a, b)| (a - b).abs() < 1e-5));
+        // Without the head the network's outputs are Q itself, and the flag travels.
+        let plain = QPolicy::new(Device::Cpu, 3, &[8], metadrive_grid(), false);
+        assert_eq!(plain.q_values(&x).size(), [2, 25]);
+        let (decoded, _) =
+            QPolicy::from_bytes(&Policy::to_bytes(&plain, 1).unwrap(), Device::Cpu).unwrap();
+        assert!(!decoded.dueling);
+    }
+
+    #[test]
     fn unknown_kinds_and_bad_metadata_are_errors() {
-        let q = QPolicy::new(Device::Cpu, 2, &[4], metadrive_grid());
+        let q = QPolicy::new(Device::Cpu, 2, &[4], metadrive_grid(), true);
         let named = q.named_tensors();
         let refs: Vec<(String, &Tensor)> = named.iter().map(|(n, t)| (n.clone(), t)).collect();
         let good = Policy::to_bytes(&q, 1).unwrap();
@@ -449,6 +492,7 @@ mod tests {
             ("epsilon", "1.5"),
             ("grid_steering", "0,x"),
             ("grid_throttle", "1,0"),
+            ("dueling", "maybe"),
         ] {
             let mut bad = metadata.clone();
             bad.insert(key.into(), value.into());

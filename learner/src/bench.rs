@@ -137,4 +137,26 @@ mod tests {
             assert_eq!(RolloutFragment::from_proto(proto, dims).unwrap(), fragment);
         }
     }
+
+    #[test]
+    fn dqn_benches_its_own_batch_size_on_its_grid_and_trains() {
+        let mut config = RunConfig::default();
+        config.learner.algo = AlgoKind::Dqn;
+        config.dqn.hidden = vec![8];
+        config.dqn.batch_size = 16;
+        config.dqn.learning_starts = 1;
+        config.scenario.agents = 2;
+        config.rollout.fragment_length = 10;
+        config.dqn.train_batch_env_steps = 15;
+        let mut dqn = crate::algo::build(&config, Device::Cpu).unwrap();
+        let batch = synthetic_batch(&config, dqn.as_ref(), 1).unwrap();
+        assert_eq!(batch.len(), 2, "15 env steps need 2 fragments of 10");
+        let stats = dqn.update(&batch).unwrap();
+        assert_eq!(stats.off_grid_fragments, 0, "the bench acts on the grid");
+        // 40 transitions × 32 / 16 = 80 gradient steps of 16.
+        assert_eq!((stats.agent_steps, stats.samples_trained), (40, 1280));
+        let report = run(&config, dqn.as_mut(), "Cpu".into(), 1).unwrap();
+        assert_eq!((report.algo, report.epochs), ("dqn", 32.0));
+        assert!(report.samples_per_s > 0.0);
+    }
 }

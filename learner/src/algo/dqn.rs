@@ -76,8 +76,9 @@ impl Dqn {
         seed: u64,
     ) -> Result<Self, AlgoError> {
         let grid = ActionGrid::new(config.steering.clone(), config.throttle.clone())?;
-        let mut online = QPolicy::new(device, obs_dim as i64, &config.hidden, grid.clone());
-        let mut target = QPolicy::new(device, obs_dim as i64, &config.hidden, grid);
+        let new = |grid| QPolicy::new(device, obs_dim as i64, &config.hidden, grid, config.dueling);
+        let mut online = new(grid.clone());
+        let mut target = new(grid);
         target.copy_from(&online)?;
         online.set_epsilon(config.epsilon_start);
         let adam = Adam::new(online.trainable(), config.learning_rate, config.adam_eps);
@@ -113,7 +114,7 @@ impl Dqn {
         } else {
             (agent_steps as f64 / config.epsilon_decay_agent_steps as f64).min(1.0)
         };
-        config.epsilon_start + (config.epsilon_end - config.epsilon_start) * progress
+        config.epsilon_end + (config.epsilon_start - config.epsilon_end) * (1.0 - progress)
     }
 
     /// One gradient step on a sampled minibatch: (TD loss, mean Q(s, a), gradient norm), or
@@ -301,4 +302,262 @@ fn read_counter(state: &mut Decoded, name: &str) -> Result<u64, WeightsError> {
         return Err(WeightsError::Metadata { key: name.into() });
     }
     Ok(((parts[0] as u64) << 24) | parts[1] as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::shared_ppo::testing::{
+        assert_checkpoint_round_trip, host_state, neighbourhood_fragment,
+    };
+    use junction_common::config::RunConfig;
+    use junction_common::weights;
+
+    fn host(t: &Tensor) -> Vec<f32> {
+        Vec::<f32>::try_from(t.to_kind(Kind::Float).flatten(0, -1)).unwrap()
+    }
+
+    #[test]
+    fn double_dqn_targets_let_the_online_network_choose_and_the_target_evaluate() {
+        // Row 0: the online network prefers action 1, whose target value is 20 (plain DQN
+        // would bootstrap from the target's own maximum, 30). Row 1: done, no bootstrap.
+        // Row 2: online prefers action 2 (-1), the target values it at -4.
+        let next_online = Tensor::from_slice(&[1.0f32, 3.0, 2.0, 5.0, 0.0, 0.0, -3.0, -2.0, -1.0])
+            .reshape([3, 3]);
+        let next_target = Tensor::from_slice(&[10.0f32, 20.0, 30.0, 7.0, 8.0, 9.0, 6.0, 5.0, -4.0])
+            .reshape([3, 3]);
+        let rewards = Tensor::from_slice(&[1.0f32, 2.0, 0.5]);
+        let dones = Tensor::from_slice(&[0.0f32, 1.0, 0.0]);
+        let y = double_dqn_targets(&next_online, &next_target, &rewards, &dones, 0.5);
+        // 1 + 0.5·20 = 11; 2 (done); 0.5 + 0.5·(−4) = −1.5
+        assert_eq!(host(&y), vec![11.0, 2.0, -1.5]);
+    }
+
+    /// The fixture's actions, (0.1·(s + 1), 0.5 − t), are exactly the points of this grid.
+    fn fixture_config() -> DqnConfig {
+        let mut c = RunConfig::default().dqn;
+        c.steering = (1..=6).map(|s| 0.1 * s as f32).collect();
+        c.throttle = vec![-0.5, 0.5];
+        c.hidden = vec![8];
+        c.batch_size = 4;
+        c.replay_ratio = 2.0;
+        c.learning_starts = 1;
+        c.target_update_gradient_steps = 3;
+        c.epsilon_decay_agent_steps = 20;
+        c
+    }
+
+    fn dqn(config: &DqnConfig) -> Dqn {
+        tch::manual_seed(7);
+        Dqn::new(config, 2, Device::Cpu, 3).unwrap()
+    }
+
+    #[test]
+    fn an_update_stores_transitions_steps_by_the_replay_ratio_and_follows_the_epsilon_schedule() {
+        let config = fixture_config();
+        let mut learner = dqn(&config);
+        assert_eq!(learner.online.epsilon(), 1.0, "ε starts at epsilon_start");
+        let fragment = neighbourhood_fragment();
+        let stats = learner.update(std::slice::from_ref(&fragment)).unwrap();
+        // 11 alive cells; 11 × 2 / 4 = 5.5 → 5 steps of 4, 0.5 carried over.
+        assert_eq!((stats.agent_steps, stats.replay_transitions), (11, 11));
+        assert_eq!((stats.samples_trained, learner.gradient_steps), (20, 5));
+        assert_eq!(learner.step_debt, 0.5);
+        assert!(stats.value_loss > 0.0 && stats.q_mean.is_finite() && stats.grad_norm > 0.0);
+        // ε = 0.01 + (1 − 0.01) · (1 − 11/20)
+        assert!((stats.epsilon - (1.0 - 0.99 * 11.0 / 20.0)).abs() < 1e-12);
+        // 5 steps synced the target once (after step 3), so it differs from the online net
+        // again, but not from what it was at step 3: check it moved off its initial weights.
+        let initial = dqn(&config).target.named_tensors();
+        let moved = learner
+            .target
+            .named_tensors()
+            .iter()
+            .zip(&initial)
+            .any(|((_, a), (_, b))| host(a) != host(b));
+        assert!(moved, "the target was synced");
+
+        let stats = learner.update(std::slice::from_ref(&fragment)).unwrap();
+        // 11 × 2 / 4 + 0.5 = 6 steps; ε has reached its end value.
+        assert_eq!((stats.samples_trained, learner.gradient_steps), (24, 11));
+        assert_eq!((stats.epsilon, stats.replay_transitions), (0.01, 22));
+        assert_eq!(learner.online.epsilon(), 0.01, "the broadcast carries ε");
+    }
+
+    #[test]
+    fn no_gradient_step_before_learning_starts() {
+        let mut config = fixture_config();
+        config.learning_starts = 12;
+        let mut learner = dqn(&config);
+        let fragment = neighbourhood_fragment();
+        let stats = learner.update(std::slice::from_ref(&fragment)).unwrap();
+        assert_eq!((stats.samples_trained, stats.replay_transitions), (0, 11));
+        let stats = learner.update(std::slice::from_ref(&fragment)).unwrap();
+        // 22 ≥ 12: this update's 11 transitions are owed, 11 × 2 / 4 = 5 steps.
+        assert_eq!(stats.samples_trained, 20);
+    }
+
+    #[test]
+    fn off_grid_fragments_are_counted_and_not_learned_from() {
+        let mut learner = dqn(&fixture_config());
+        let on_grid = neighbourhood_fragment();
+        let mut off_grid = neighbourhood_fragment();
+        off_grid.actions[0] = 0.15;
+        let stats = learner.update(&[off_grid.clone(), on_grid]).unwrap();
+        assert_eq!((stats.off_grid_fragments, stats.agent_steps), (1, 11));
+        let stats = learner.update(&[off_grid]).unwrap();
+        assert_eq!((stats.off_grid_fragments, stats.agent_steps), (1, 0));
+        assert_eq!(stats.replay_transitions, 11);
+        // A Gaussian policy's continuous actions are off any grid.
+        let mut gaussian = neighbourhood_fragment();
+        gaussian.actions.iter_mut().for_each(|a| *a += 0.013);
+        assert_eq!(learner.update(&[gaussian]).unwrap().off_grid_fragments, 1);
+    }
+
+    #[test]
+    fn the_replay_stores_coordinated_rewards() {
+        let fragment = neighbourhood_fragment();
+        let cooperative = LcfConfig {
+            phi_deg: 90.0,
+            alpha: 1.0,
+            beta: 1.0,
+        };
+        let mut learner = dqn(&fixture_config()).with_coordination(&cooperative);
+        learner.update(std::slice::from_ref(&fragment)).unwrap();
+        let state = learner.replay.state();
+        let stored = host(&state.iter().find(|(n, _)| n == "replay.rewards").unwrap().1);
+        let expected: Vec<f32> = lcf::coordinated_rewards(&fragment, 90f32.to_radians(), 1.0, 1.0)
+            .iter()
+            .zip(&fragment.alive)
+            .filter(|(_, alive)| **alive)
+            .map(|(r, _)| *r)
+            .collect();
+        assert_eq!(stored, expected);
+        assert_ne!(
+            stored[..5],
+            fragment.rewards[..5],
+            "φ = 90° is not the own reward"
+        );
+    }
+
+    #[test]
+    fn a_restored_learner_with_its_replay_continues_bit_for_bit() {
+        let mut config = fixture_config();
+        config.checkpoint_replay = true;
+        assert_checkpoint_round_trip(|| {
+            let mut learner = dqn(&config);
+            learner.update(&[neighbourhood_fragment()]).unwrap();
+            learner
+        });
+    }
+
+    #[test]
+    fn without_its_replay_a_restored_learner_keeps_networks_optimiser_and_counters() {
+        let config = fixture_config();
+        let mut a = dqn(&config);
+        a.update(&[neighbourhood_fragment()]).unwrap();
+        let state = a.state_tensors();
+        assert!(state.iter().all(|(n, _)| !n.starts_with("replay.")));
+        let refs: Vec<(String, &Tensor)> = state.iter().map(|(n, t)| (n.clone(), t)).collect();
+        let bytes = weights::encode(&refs, Default::default()).unwrap();
+        let mut b = dqn(&config);
+        b.restore(
+            &a.policy().to_bytes(1).unwrap(),
+            &mut Decoded::decode(&bytes).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(host_state(&a), host_state(&b));
+        assert_eq!(
+            a.policy().to_bytes(1).unwrap(),
+            b.policy().to_bytes(1).unwrap()
+        );
+        assert_eq!(
+            (b.replay.len(), b.online.epsilon()),
+            (0, a.online.epsilon())
+        );
+        // A checkpoint of another grid size is refused.
+        let mut other = config.clone();
+        other.throttle = vec![0.5];
+        assert!(
+            dqn(&other)
+                .restore(
+                    &a.policy().to_bytes(1).unwrap(),
+                    &mut Decoded::decode(&bytes).unwrap()
+                )
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn counters_survive_beyond_what_one_float_holds() {
+        for value in [
+            0,
+            1,
+            (1 << 24) - 1,
+            1 << 24,
+            (1 << 30) + 5,
+            (1u64 << 47) + 3,
+        ] {
+            let t = counter_tensor(value);
+            let mut state = Decoded {
+                tensors: [("c".to_string(), t)].into(),
+                metadata: Default::default(),
+            };
+            assert_eq!(read_counter(&mut state, "c").unwrap(), value);
+        }
+    }
+
+    /// A one-step bandit over the 5 × 5 grid: reward −(steering − 0.5)² − (throttle − 1)², every
+    /// episode done after one step. DQN must learn Q ≈ r and act greedily at (0.5, 1).
+    #[test]
+    fn dqn_learns_the_best_grid_point_of_a_bandit() {
+        tch::manual_seed(0);
+        let mut config = RunConfig::default().dqn;
+        config.hidden = vec![16];
+        config.batch_size = 32;
+        config.replay_ratio = 8.0;
+        config.learning_starts = 64;
+        config.learning_rate = 3e-3;
+        config.epsilon_decay_agent_steps = 1_000_000;
+        let mut learner = Dqn::new(&config, 3, Device::Cpu, 1).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let agents = 64;
+        let obs = vec![0.5f32; agents * 3];
+        for _ in 0..40 {
+            let (actions, log_probs) = learner.policy().sample(&obs, &mut rng).unwrap();
+            let rewards = actions
+                .chunks(2)
+                .map(|a| -(a[0] - 0.5).powi(2) - (a[1] - 1.0).powi(2))
+                .collect();
+            let fragment = RolloutFragment {
+                steps: 1,
+                agents,
+                obs_dim: 3,
+                action_dim: 2,
+                obs: obs.clone(),
+                actions,
+                log_probs,
+                rewards,
+                costs: vec![0.0; agents],
+                dones: vec![true; agents],
+                alive: vec![true; agents],
+                bootstrap_obs: vec![0.0; agents * 3],
+                neighbour_offsets: vec![0; agents + 1],
+                lcf_features: vec![0.0; agents * lcf::FEATURES],
+                ..RolloutFragment::default()
+            };
+            fragment.validate(Some((3, 2))).unwrap();
+            learner.update(&[fragment]).unwrap();
+        }
+        let greedy = learner.policy().deterministic(&obs[..3]).unwrap();
+        assert_eq!(greedy, vec![0.5, 1.0]);
+        let q = learner.online.q_values(
+            &learner
+                .online
+                .normalize(&Tensor::from_slice(&obs[..3]).reshape([1, 3])),
+        );
+        let q = host(&q);
+        assert!(q[23].abs() < 0.1, "Q(best) ≈ 0: {}", q[23]);
+        assert!((q[0] + 6.25).abs() < 0.5, "Q(-1, -1) ≈ -6.25: {}", q[0]);
+    }
 }
