@@ -304,10 +304,11 @@ impl DqnConfig {
                     .into(),
             );
         }
-        if !(self.replay_ratio > 0.0 && self.replay_ratio.is_finite())
-            || !(self.huber_delta > 0.0)
-            || !(self.max_grad_norm >= 0.0)
-        {
+        let positive = |x: f64| x > 0.0 && x.is_finite();
+        let valid = positive(f64::from(self.replay_ratio))
+            && positive(self.huber_delta)
+            && (0.0..).contains(&self.max_grad_norm);
+        if !valid {
             problems.push(
                 "dqn.replay_ratio and dqn.huber_delta must be > 0, dqn.max_grad_norm >= 0".into(),
             );

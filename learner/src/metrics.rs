@@ -270,7 +270,7 @@ impl LearnerMetrics {
             )?,
             epsilon: gauge(
                 names::LEARNER_EPSILON,
-                "DQN: exploration rate epsilon broadcast with the newest policy (0 for PPO).",
+                "DQN: exploration rate epsilon broadcast after the last update (0 for PPO and before the first update).",
             )?,
             replay_transitions: int_gauge(
                 names::LEARNER_REPLAY_TRANSITIONS,

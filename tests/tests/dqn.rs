@@ -80,7 +80,10 @@ fn dqn_trains_checkpoints_a_greedy_q_policy_and_resumes_with_its_replay() {
     );
     assert_eq!(m.get(OFF_GRID), Some(&0.0), "the actor acts on the grid");
     let actor_version = metric_sum(&scrape(&actor_metrics), ACTOR_VERSION);
-    assert!(actor_version >= 1.0, "the actor never switched to a Q-policy");
+    assert!(
+        actor_version >= 1.0,
+        "the actor never switched to a Q-policy"
+    );
 
     learner.signal(libc::SIGTERM);
     let status = learner.wait_exit(Duration::from_secs(10));
@@ -102,7 +105,15 @@ fn dqn_trains_checkpoints_a_greedy_q_policy_and_resumes_with_its_replay() {
     let render = |name: &str| {
         let out = dir.path().join(name);
         let status = std::process::Command::new(bin("actor"))
-            .args(["render", "--scenario", "tiny-straight", "--steps", "30", "--size", "64"])
+            .args([
+                "render",
+                "--scenario",
+                "tiny-straight",
+                "--steps",
+                "30",
+                "--size",
+                "64",
+            ])
             .arg("--checkpoint")
             .arg(&run_dir)
             .arg("--out")
@@ -116,7 +127,11 @@ fn dqn_trains_checkpoints_a_greedy_q_policy_and_resumes_with_its_replay() {
         );
         std::fs::read(out).expect("the GIF")
     };
-    assert_eq!(render("a.gif"), render("b.gif"), "a replay is deterministic");
+    assert_eq!(
+        render("a.gif"),
+        render("b.gif"),
+        "a replay is deterministic"
+    );
 
     // The resumed learner keeps its buffer: its first update adds to what was checkpointed.
     let resumed_logs = dir.path().join("resumed");
