@@ -146,7 +146,10 @@ impl Dqn {
         let grad_norm = self.adam.clip_grad_norm(c.max_grad_norm);
         self.adam.step();
         self.gradient_steps += 1;
-        if self.gradient_steps.is_multiple_of(c.target_update_gradient_steps) {
+        if self
+            .gradient_steps
+            .is_multiple_of(c.target_update_gradient_steps)
+        {
             self.target.copy_from(&self.online)?;
         }
         let q_mean = f64::try_from(q.detach().mean(Kind::Float))?;

@@ -64,11 +64,9 @@ impl ReplayBuffer {
         self.actions.is_empty()
     }
 
-    fn push(&mut self, obs: &[f32], action: i64, reward: f32, next_obs: Option<&[f32]>) {
+    fn push(&mut self, obs: &[f32], action: i64, reward: f32, next: &[f32], done: bool) {
         let d = self.obs_dim;
-        let zeros = vec![0.0; d];
-        let next = next_obs.unwrap_or(&zeros);
-        let done = if next_obs.is_none() { 1.0 } else { 0.0 };
+        let done = if done { 1.0 } else { 0.0 };
         if self.len() < self.capacity {
             self.obs.extend_from_slice(obs);
             self.next_obs.extend_from_slice(next);
@@ -101,27 +99,25 @@ impl ReplayBuffer {
         let indices: Vec<usize> = alive_cells()
             .map(|cell| action_index(&f.actions[cell * a..(cell + 1) * a]))
             .collect::<Option<_>>()?;
+        let zeros = vec![0.0; d];
         for (cell, action) in alive_cells().zip(indices) {
             let (t, slot) = (cell / f.agents, cell % f.agents);
             let next = if f.dones[cell] {
-                None
+                &zeros
             } else if t + 1 < f.steps {
                 let next_cell = cell + f.agents;
-                Some(&f.obs[next_cell * d..(next_cell + 1) * d])
+                &f.obs[next_cell * d..(next_cell + 1) * d]
             } else {
-                Some(&f.bootstrap_obs[slot * d..(slot + 1) * d])
+                &f.bootstrap_obs[slot * d..(slot + 1) * d]
             };
-            self.push(
-                &f.obs[cell * d..(cell + 1) * d],
-                action as i64,
-                rewards[cell],
-                next,
-            );
+            let obs = &f.obs[cell * d..(cell + 1) * d];
+            self.push(obs, action as i64, rewards[cell], next, f.dones[cell]);
         }
         Some(f.agent_steps())
     }
 
-    /// `size` transitions drawn uniformly with replacement by `rng`.
+    /// `size` transitions drawn uniformly with replacement by `rng`; the buffer must not be
+    /// empty (learners sample once it holds `learning_starts` ≥ 1 transitions).
     pub fn sample(&self, size: usize, rng: &mut ChaCha8Rng, device: Device) -> Sample {
         let d = self.obs_dim;
         let picks: Vec<usize> = (0..size).map(|_| rng.gen_range(0..self.len())).collect();
