@@ -16,7 +16,7 @@ use junction_common::auth::{self, Token};
 use junction_common::config::{RolloutConfig, RunConfig, ScenarioConfig};
 use junction_common::fragment::{MAX_STEPS, PROTOCOL_VERSION};
 use junction_common::lcf::LcfDistribution;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::{self, Policy};
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
@@ -648,17 +648,20 @@ fn rollout_loop(
     let first_id = actor_id.borrow_and_update().clone();
     let _span =
         tracing::info_span!("rollout", actor = %first_id, scenario = %scenario.name).entered();
-    type Loaded = (GaussianPolicy, Option<LcfDistribution>);
+    // The blob says which kind of policy it is (Gaussian or DQN's Q-policy) and whether it
+    // takes CoPO's LCF angle: no flag needed.
+    type Loaded = (Box<dyn Policy>, Option<LcfDistribution>);
     let load = |w: &proto::PolicyWeights| -> anyhow::Result<Loaded> {
-        let (policy, meta) = GaussianPolicy::from_bytes(&w.data, tch::Device::Cpu)
-            .context("decoding policy weights")?;
+        let (policy, meta) =
+            policy::decode(&w.data, tch::Device::Cpu).context("decoding policy weights")?;
         let lcf = blob_distribution(&w.data).context("reading the policy's LCF distribution")?;
         let columns = lcf.map_or(0, |_| LcfDistribution::OBS_COLUMNS);
         if meta.obs_layout_version != OBS_LAYOUT_VERSION
             || policy.obs_dim() != scenario.obs_dim() + columns
+            || policy.action_dim() != ACTION_DIM
         {
             bail!(
-                "policy v{} was trained for another observation layout or size",
+                "policy v{} was trained for another observation layout or size or action size",
                 w.version
             );
         }

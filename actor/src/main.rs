@@ -132,7 +132,8 @@ struct RenderArgs {
     /// tiny-straight) or a scenario TOML file.
     #[arg(long, default_value = "intersection")]
     scenario: String,
-    /// Drive every agent with this policy's mean action: a checkpoint directory
+    /// Drive every agent with this policy's deterministic action (a Gaussian policy's mean, a
+    /// DQN policy's greedy grid point): a checkpoint directory
     /// (runs/<run>/checkpoints/ckpt-N), a run directory (its newest checkpoint) or a
     /// policy.safetensors file. Without it the scripted autopilot drives.
     #[arg(long, value_name = "DIR")]
@@ -244,7 +245,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     let driver = match &args.checkpoint {
         Some(path) => {
             let loaded = replay::policy_driver(path, &scenario)?;
-            tracing::info!(policy = %loaded.file.display(), "driving with the policy's mean action");
+            tracing::info!(policy = %loaded.file.display(), "driving with the policy's deterministic action");
             loaded.driver
         }
         None => Driver::Autopilot,

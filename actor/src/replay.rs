@@ -1,5 +1,6 @@
 //! `actor render`: one episode of the pure simulator, driven by the scripted autopilot or by a
-//! checkpoint's policy (its mean action, so a replay is deterministic), drawn frame by frame
+//! checkpoint's policy (its deterministic action: a Gaussian's mean, a Q-policy's greedy grid
+//! point, so a replay is deterministic), drawn frame by frame
 //! and written as an animated GIF and optionally one PNG per frame.
 
 use std::collections::{BTreeMap, HashMap};
@@ -11,9 +12,11 @@ use anyhow::{Context, bail, ensure};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
-use junction_common::policy::{GaussianPolicy, PolicyMeta};
+use junction_common::lcf::{self, LcfDistribution};
+use junction_common::policy::{self, Policy, PolicyMeta};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
+use crate::lcf_column::blob_distribution;
 use crate::render::{Flashes, Frame, Renderer};
 use crate::sim::Scene;
 use crate::sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
@@ -32,8 +35,16 @@ const QUANTISE_SPEED: i32 = 10;
 pub enum Driver {
     /// The scripted pure-pursuit driver of `actor bench`.
     Autopilot,
-    /// A trained policy's mean action for every agent.
-    Policy(GaussianPolicy),
+    /// A trained policy's deterministic action for every agent.
+    Policy(PolicyDriver),
+}
+
+/// A decoded policy and what it observes beyond the scene: a CoPO policy sees the mean angle
+/// μ of its LCF distribution for every agent, the deterministic counterpart of each agent
+/// drawing its own φ as in training.
+pub struct PolicyDriver {
+    pub policy: Box<dyn Policy>,
+    pub lcf: Option<LcfDistribution>,
 }
 
 impl Driver {
@@ -44,7 +55,7 @@ impl Driver {
                 autopilot_actions(scene, CRUISE_SPEED_MPS, out);
                 return Ok(());
             }
-            Driver::Policy(policy) => policy,
+            Driver::Policy(driver) => driver,
         };
         out.fill(0.0);
         let obs_dim = scene.obs_dim();
@@ -52,13 +63,16 @@ impl Driver {
         if slots.is_empty() {
             return Ok(());
         }
-        let mut batch = Vec::with_capacity(slots.len() * obs_dim);
+        let phi = policy.lcf.map(|d| lcf::phi_observation(d.mean_deg));
+        let mut batch = Vec::with_capacity(slots.len() * policy.policy.obs_dim());
         for &slot in &slots {
             batch.extend_from_slice(&scene.observations()[slot * obs_dim..(slot + 1) * obs_dim]);
+            batch.extend(phi);
         }
-        // Zero noise: the Gaussian's mean.
-        let noise = vec![0.0; slots.len() * ACTION_DIM];
-        let (actions, _) = policy.act(&batch, &noise).context("policy inference")?;
+        let actions = policy
+            .policy
+            .deterministic(&batch)
+            .context("policy inference")?;
         for (row, &slot) in slots.iter().enumerate() {
             out[slot * ACTION_DIM..(slot + 1) * ACTION_DIM]
                 .copy_from_slice(&actions[row * ACTION_DIM..(row + 1) * ACTION_DIM]);
@@ -81,10 +95,10 @@ pub struct LoadedPolicy {
 pub fn policy_driver(path: &Path, scenario: &ScenarioConfig) -> anyhow::Result<LoadedPolicy> {
     let file = policy_file(path)?;
     let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-    let (policy, meta) = load_policy(&bytes, scenario)
+    let (driver, meta) = load_policy(&bytes, scenario)
         .with_context(|| format!("loading the policy in {}", file.display()))?;
     Ok(LoadedPolicy {
-        driver: Driver::Policy(policy),
+        driver: Driver::Policy(driver),
         file,
         version: meta.version,
     })
@@ -124,13 +138,16 @@ pub fn policy_file(path: &Path) -> anyhow::Result<PathBuf> {
     }
 }
 
-/// Decodes a policy blob and checks it was trained on this scenario's observations.
+/// Decodes a policy blob and checks it was trained on this scenario's observations (and, for
+/// CoPO, its LCF angle).
 pub fn load_policy(
     bytes: &[u8],
     scenario: &ScenarioConfig,
-) -> anyhow::Result<(GaussianPolicy, PolicyMeta)> {
+) -> anyhow::Result<(PolicyDriver, PolicyMeta)> {
     let (policy, meta) =
-        GaussianPolicy::from_bytes(bytes, tch::Device::Cpu).context("decoding policy weights")?;
+        policy::decode(bytes, tch::Device::Cpu).context("decoding policy weights")?;
+    let lcf = blob_distribution(bytes).context("reading the policy's LCF distribution")?;
+    let columns = lcf.map_or(0, |_| LcfDistribution::OBS_COLUMNS);
     ensure!(
         meta.obs_layout_version == OBS_LAYOUT_VERSION,
         "the policy (v{}) was trained on observation layout {}, this actor produces layout {}",
@@ -139,14 +156,19 @@ pub fn load_policy(
         OBS_LAYOUT_VERSION
     );
     ensure!(
-        policy.obs_dim() == scenario.obs_dim(),
+        policy.obs_dim() == scenario.obs_dim() + columns,
         "the policy (v{}) expects {} observation values, but scenario {:?} produces {} \
-         ({} lidar beams)",
+         ({} lidar beams){}",
         meta.version,
         policy.obs_dim(),
         scenario.name,
         scenario.obs_dim(),
-        scenario.sensors.lidar_beams
+        scenario.sensors.lidar_beams,
+        if columns > 0 {
+            " and CoPO's LCF angle one more"
+        } else {
+            ""
+        }
     );
     ensure!(
         policy.action_dim() == ACTION_DIM,
@@ -154,7 +176,7 @@ pub fn load_policy(
         meta.version,
         policy.action_dim()
     );
-    Ok((policy, meta))
+    Ok((PolicyDriver { policy, lcf }, meta))
 }
 
 /// What to simulate and draw.
@@ -341,6 +363,8 @@ pub fn write_png(path: &Path, frame: &Frame) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use junction_common::policy::GaussianPolicy;
+    use junction_common::q_policy::{ActionGrid, QPolicy};
     use junction_common::scenarios;
 
     /// A fresh directory under the system's temporary directory.
@@ -408,6 +432,40 @@ mod tests {
     }
 
     #[test]
+    fn a_copo_policy_observes_its_mean_angle_and_needs_its_distribution() {
+        let scenario = scenarios::load("tiny-straight").unwrap();
+        let copo = GaussianPolicy::new(
+            tch::Device::Cpu,
+            scenario.obs_dim() as i64 + 1,
+            2,
+            &[8],
+            0.0,
+        );
+        let distribution = LcfDistribution {
+            mean_deg: 30.0,
+            std_deg: 9.0,
+        };
+        let blob = copo
+            .to_bytes_with_metadata(4, distribution.to_metadata())
+            .unwrap();
+        let (driver, _) = load_policy(&blob, &scenario).unwrap();
+        let scene = Scene::new(&scenario, 1).unwrap();
+        let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
+        Driver::Policy(driver)
+            .actions(&scene, &mut actions)
+            .unwrap();
+        // The slot's scene observation with φ = μ appended: (30/90 + 1)/2.
+        let mut row = scene.observations()[..scene.obs_dim()].to_vec();
+        row.push(lcf::phi_observation(30.0));
+        assert_eq!(actions[..ACTION_DIM], copo.deterministic(&row).unwrap()[..]);
+        // The same network without the distribution cannot be fed.
+        let Err(error) = load_policy(&copo.to_bytes(4).unwrap(), &scenario) else {
+            panic!("a 92-value policy without an LCF distribution was accepted");
+        };
+        assert!(error.to_string().contains("observation values"), "{error}");
+    }
+
+    #[test]
     fn a_policy_drives_and_a_mismatched_one_is_refused() {
         let scenario = scenarios::load("tiny-straight").unwrap();
         let fitting =
@@ -424,12 +482,49 @@ mod tests {
         assert_eq!(summary.frames, 5);
 
         let other = GaussianPolicy::new(tch::Device::Cpu, 50, 2, &[8], 0.0);
-        let error = load_policy(&other.to_bytes(7).unwrap(), &scenario)
-            .expect_err("a 50-value policy does not fit a 91-value scenario");
+        let Err(error) = load_policy(&other.to_bytes(7).unwrap(), &scenario) else {
+            panic!("a 50-value policy does not fit a 91-value scenario");
+        };
         assert!(
             error.to_string().contains("expects 50 observation values"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn a_q_policy_drives_its_greedy_grid_points_even_when_it_explores_in_training() {
+        let scenario = scenarios::load("tiny-straight").unwrap();
+        let grid = ActionGrid::new(vec![-0.5, 0.0, 0.5], vec![0.0, 1.0]).unwrap();
+        let mut q = QPolicy::new(
+            tch::Device::Cpu,
+            scenario.obs_dim() as i64,
+            &[8],
+            grid,
+            true,
+        );
+        // Actors would explore on every step; a replay must not.
+        q.set_epsilon(1.0);
+        let blob = Policy::to_bytes(&q, 3).unwrap();
+        let driver = Driver::Policy(load_policy(&blob, &scenario).unwrap().0);
+        let scene = Scene::new(&scenario, 1).unwrap();
+        let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
+        driver.actions(&scene, &mut actions).unwrap();
+        let obs = &scene.observations()[..scene.obs_dim()];
+        assert_eq!(
+            &actions[..ACTION_DIM],
+            q.deterministic(obs).unwrap().as_slice()
+        );
+        assert!(q.grid().index_of(&actions[..ACTION_DIM]).is_some());
+        let frames = || {
+            let mut pixels = Vec::new();
+            run(&scenario, &driver, &options(30, 10), |_, frame| {
+                pixels.extend_from_slice(frame.pixels());
+                Ok(())
+            })
+            .unwrap();
+            pixels
+        };
+        assert_eq!(frames(), frames(), "a replay is deterministic");
     }
 
     #[test]

@@ -5,13 +5,12 @@ use std::time::Instant;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::lcf::LcfDistribution;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::Policy;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::WeightsError;
 
@@ -62,7 +61,8 @@ pub struct RolloutWorker {
     /// Seeds the scenes; a new stream after every rebuild, so rebuilt scenes do not replay.
     scene_seed: u64,
     scenes: Vec<Scene>,
-    policy: GaussianPolicy,
+    /// Whatever the learner broadcast: a Gaussian (PPO) or an ε-greedy Q-policy (DQN).
+    policy: Box<dyn Policy>,
     policy_version: u64,
     fragment_length: usize,
     rng: ChaCha8Rng,
@@ -70,22 +70,22 @@ pub struct RolloutWorker {
     sequence: u64,
     /// CoPO's per-agent LCF angle, when the policy takes one.
     lcf: LcfColumn,
-    /// Reused per step: observations of all live agents, their noise, and where each row goes.
+    /// Reused per step: observations of all live agents and where each row goes.
     batch_obs: Vec<f32>,
-    batch_noise: Vec<f32>,
     batch_rows: Vec<(usize, usize)>,
     scene_actions: Vec<Vec<f32>>,
     scene_log_probs: Vec<Vec<f32>>,
 }
 
 impl RolloutWorker {
-    /// `seed` drives every scene (scene `k` gets a seed derived from it) and the action noise.
+    /// `seed` drives every scene (scene `k` gets a seed derived from it) and the policy's
+    /// random choices.
     pub fn new(
         scenario: &ScenarioConfig,
         scenes: usize,
         seed: u64,
         fragment_length: usize,
-        policy: GaussianPolicy,
+        policy: Box<dyn Policy>,
         policy_version: u64,
         actor_id: String,
     ) -> Result<Self, SimError> {
@@ -106,7 +106,6 @@ impl RolloutWorker {
             sequence: 0,
             lcf,
             batch_obs: Vec::new(),
-            batch_noise: Vec::new(),
             batch_rows: Vec::new(),
             scene_actions: Vec::new(),
             scene_log_probs: Vec::new(),
@@ -161,7 +160,7 @@ impl RolloutWorker {
     }
 
     /// Switches to new weights; takes effect from the next fragment on.
-    pub fn set_policy(&mut self, policy: GaussianPolicy, version: u64) {
+    pub fn set_policy(&mut self, policy: Box<dyn Policy>, version: u64) {
         self.policy = policy;
         self.policy_version = version;
     }
@@ -270,15 +269,10 @@ impl RolloutWorker {
             actions.fill(0.0);
             log_probs.fill(0.0);
         }
-        self.batch_noise.clear();
-        let rng = &mut self.rng;
-        self.batch_noise.extend(
-            (0..self.batch_rows.len() * ACTION_DIM).map(|_| -> f32 { StandardNormal.sample(rng) }),
-        );
         let (actions, log_probs) = if self.batch_rows.is_empty() {
             (Vec::new(), Vec::new())
         } else {
-            self.policy.act(&self.batch_obs, &self.batch_noise)?
+            self.policy.sample(&self.batch_obs, &mut self.rng)?
         };
         for (row, &(k, slot)) in self.batch_rows.iter().enumerate() {
             self.scene_actions[k][slot * ACTION_DIM..(slot + 1) * ACTION_DIM]
@@ -315,6 +309,7 @@ pub fn derive_seed(seed: u64, stream: u64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use junction_common::policy::GaussianPolicy;
 
     /// Two scenes of an 8-agent intersection driven by `policy` (serialised weights).
     fn worker(seed: u64, policy: &[u8]) -> RolloutWorker {
@@ -322,7 +317,7 @@ mod tests {
             agents: 8,
             ..ScenarioConfig::default()
         };
-        let (policy, _) = GaussianPolicy::from_bytes(policy, tch::Device::Cpu).unwrap();
+        let (policy, _) = junction_common::policy::decode(policy, tch::Device::Cpu).unwrap();
         RolloutWorker::new(&scenario, 2, seed, 40, policy, 0, "test".into()).unwrap()
     }
 
@@ -393,7 +388,8 @@ mod tests {
             &[16],
             0.0,
         );
-        let mut w = RolloutWorker::new(&scenario, 2, 5, 40, policy, 0, "test".into()).unwrap();
+        let mut w =
+            RolloutWorker::new(&scenario, 2, 5, 40, Box::new(policy), 0, "test".into()).unwrap();
         w.set_lcf_distribution(Some(LcfDistribution {
             mean_deg: 10.0,
             std_deg: 30.0,
@@ -430,6 +426,52 @@ mod tests {
             }
         }
         assert!(distinct.len() > 8, "agents draw their own φ: {distinct:?}");
+    }
+
+    #[test]
+    fn a_q_policy_blob_makes_the_actor_act_epsilon_greedily_on_its_grid() {
+        use junction_common::q_policy::{ActionGrid, QPolicy};
+        let obs_dim = ScenarioConfig::default().obs_dim() as i64;
+        let grid = ActionGrid::new(vec![-0.5, 0.0, 0.5], vec![-1.0, 1.0]).unwrap();
+        let mut q = QPolicy::new(tch::Device::Cpu, obs_dim, &[16], grid.clone(), true);
+        q.set_epsilon(0.3);
+        let blob = Policy::to_bytes(&q, 0).unwrap();
+        let (fragments, _) = worker(4, &blob).collect().unwrap();
+        assert_eq!(
+            fragments,
+            worker(4, &blob).collect().unwrap().0,
+            "deterministic"
+        );
+        // ln(ε/|A| + (1 − ε)) for the greedy choice, ln(ε/|A|) for any other.
+        let greedy_lp = (0.3f64 / 6.0 + 0.7).ln() as f32;
+        let other_lp = (0.3f64 / 6.0).ln() as f32;
+        let (mut explored, mut cells) = (0, 0);
+        for f in &fragments {
+            f.validate(Some((f.obs_dim, ACTION_DIM))).unwrap();
+            for cell in (0..f.steps * f.agents).filter(|&c| f.alive[c]) {
+                let action = &f.actions[cell * ACTION_DIM..(cell + 1) * ACTION_DIM];
+                assert!(
+                    grid.index_of(action).is_some(),
+                    "{action:?} is off the grid"
+                );
+                let obs = &f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim];
+                let greedy = q.deterministic(obs).unwrap();
+                let lp = f.log_probs[cell];
+                if action == greedy.as_slice() {
+                    assert_eq!(lp, greedy_lp);
+                } else {
+                    assert_eq!(lp, other_lp);
+                    explored += 1;
+                }
+                cells += 1;
+            }
+        }
+        // About ε · 5/6 of the cells leave the greedy action.
+        let share = explored as f64 / cells as f64;
+        assert!(
+            (0.15..0.35).contains(&share),
+            "{explored} of {cells} explored"
+        );
     }
 
     #[test]

@@ -50,6 +50,7 @@ pub struct RunConfig {
     pub rollout: RolloutConfig,
     pub ppo: PpoConfig,
     pub ccppo: CcppoConfig,
+    pub dqn: DqnConfig,
     pub lcf: LcfConfig,
     pub copo: CopoConfig,
     pub dynamic_lcf: DynamicLcfConfig,
@@ -249,6 +250,82 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
 }
 
+/// `learner.algo = "dqn"`: double DQN over a grid of actions (defaults and their sources in
+/// `default.toml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DqnConfig {
+    /// The action grid: every steering value with every throttle value.
+    pub steering: Vec<f32>,
+    pub throttle: Vec<f32>,
+    pub learning_rate: f64,
+    pub adam_eps: f64,
+    pub gamma: f32,
+    pub batch_size: usize,
+    pub replay_capacity: usize,
+    pub learning_starts: usize,
+    pub replay_ratio: f32,
+    pub target_update_gradient_steps: u64,
+    pub huber_delta: f64,
+    pub max_grad_norm: f64,
+    pub epsilon_start: f64,
+    pub epsilon_end: f64,
+    pub epsilon_decay_agent_steps: u64,
+    pub train_batch_env_steps: usize,
+    pub hidden: Vec<i64>,
+    pub dueling: bool,
+    pub normalize_observations: bool,
+    pub checkpoint_replay: bool,
+}
+
+impl DqnConfig {
+    /// What is wrong with the section, one line per problem.
+    fn problems(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        if crate::q_policy::ActionGrid::new(self.steering.clone(), self.throttle.clone()).is_err() {
+            problems.push(format!(
+                "dqn.steering and dqn.throttle must each list values in [-1, 1], strictly \
+                 increasing, at most {} grid points in all",
+                crate::q_policy::MAX_GRID_ACTIONS
+            ));
+        }
+        if !(self.learning_rate > 0.0 && self.learning_rate.is_finite()) {
+            problems.push("dqn.learning_rate must be a positive number".into());
+        }
+        if !(0.0..=1.0).contains(&self.gamma) {
+            problems.push("dqn.gamma must be in [0, 1]".into());
+        }
+        if self.batch_size == 0
+            || self.replay_capacity == 0
+            || self.target_update_gradient_steps == 0
+            || self.train_batch_env_steps == 0
+        {
+            problems.push(
+                "dqn.batch_size, dqn.replay_capacity, dqn.target_update_gradient_steps and \
+                 dqn.train_batch_env_steps must be > 0"
+                    .into(),
+            );
+        }
+        let positive = |x: f64| x > 0.0 && x.is_finite();
+        let valid = positive(f64::from(self.replay_ratio))
+            && positive(self.huber_delta)
+            && (0.0..).contains(&self.max_grad_norm);
+        if !valid {
+            problems.push(
+                "dqn.replay_ratio and dqn.huber_delta must be > 0, dqn.max_grad_norm >= 0".into(),
+            );
+        }
+        let probability = 0.0..=1.0;
+        if !probability.contains(&self.epsilon_start) || !probability.contains(&self.epsilon_end) {
+            problems.push("dqn.epsilon_start and dqn.epsilon_end must be in [0, 1]".into());
+        }
+        if self.hidden.is_empty() || self.hidden.iter().any(|&h| h <= 0) {
+            problems.push("dqn.hidden must list at least one positive layer size".into());
+        }
+        problems
+    }
+}
+
 /// Safe RL for every PPO algorithm: a cost critic and a Lagrange multiplier on the episode cost.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -335,6 +412,8 @@ pub enum AlgoKind {
     Copo,
     /// The paper's dynamic LCF φ = f(S_N), meta-gradient (`[dynamic_lcf]`).
     DynamicLcf,
+    /// Double DQN over a grid of actions (`[dqn]`), acting ε-greedily.
+    Dqn,
 }
 
 impl AlgoKind {
@@ -346,6 +425,7 @@ impl AlgoKind {
             AlgoKind::CcppoConcat => "ccppo-concat",
             AlgoKind::Copo => "copo",
             AlgoKind::DynamicLcf => "dynamic-lcf",
+            AlgoKind::Dqn => "dqn",
         }
     }
 
@@ -555,7 +635,24 @@ impl RunConfig {
         problems.extend(self.curriculum.problems());
         problems.extend(self.size_problems());
         problems.extend(self.server.problems());
+        problems.extend(self.dqn.problems());
+        if self.learner.algo == AlgoKind::Dqn && self.safety.mode != SafetyMode::Off {
+            problems.push(
+                "safety.mode = \"lagrangian\" is PPO-Lagrangian and works with the PPO algorithms \
+                 only; learner.algo = \"dqn\" needs safety.mode = \"off\""
+                    .into(),
+            );
+        }
         join_problems(problems)
+    }
+
+    /// Scene steps of accepted fragments that trigger an update: `dqn.train_batch_env_steps`
+    /// for DQN, `ppo.train_batch_env_steps` for the PPO algorithms.
+    pub fn train_batch_env_steps(&self) -> usize {
+        match self.learner.algo {
+            AlgoKind::Dqn => self.dqn.train_batch_env_steps,
+            _ => self.ppo.train_batch_env_steps,
+        }
     }
 
     /// Sizes beyond reason, and fragments too big for the message limit (actors could never
@@ -1087,6 +1184,48 @@ mod tests {
             Some(Path::new("c.pem"))
         );
         assert_eq!(ServerSection::path(&tls.server.auth_token_file), None);
+    }
+
+    #[test]
+    fn dqn_defaults_use_metadrive_grid_and_bad_dqn_settings_are_refused() {
+        let c = RunConfig::load(None, &["learner.algo=\"dqn\"".into()]).unwrap();
+        assert_eq!(c.dqn.steering, vec![-1.0, -0.5, 0.0, 0.5, 1.0]);
+        assert_eq!(c.dqn.throttle, c.dqn.steering);
+        assert_eq!(c.train_batch_env_steps(), c.dqn.train_batch_env_steps);
+        assert_eq!(
+            RunConfig::default().train_batch_env_steps(),
+            c.ppo.train_batch_env_steps
+        );
+        for bad in [
+            "dqn.steering=[]",
+            "dqn.steering=[0.5, 0.0]",
+            "dqn.throttle=[0.0, 2.0]",
+            "dqn.batch_size=0",
+            "dqn.replay_capacity=0",
+            "dqn.replay_ratio=0.0",
+            "dqn.epsilon_end=1.5",
+            "dqn.gamma=1.1",
+            "dqn.hidden=[]",
+            "dqn.target_update_gradient_steps=0",
+        ] {
+            let err = RunConfig::load(None, &[bad.into()]);
+            assert!(
+                matches!(err, Err(ConfigError::Invalid(_))),
+                "{bad} was accepted: {err:?}"
+            );
+        }
+        // PPO-Lagrangian is PPO's; DQN says so instead of ignoring it.
+        let err = RunConfig::load(
+            None,
+            &[
+                "learner.algo=\"dqn\"".into(),
+                "safety.mode=\"lagrangian\"".into(),
+            ],
+        );
+        assert!(
+            matches!(&err, Err(ConfigError::Invalid(m)) if m.contains("PPO")),
+            "{err:?}"
+        );
     }
 
     #[test]

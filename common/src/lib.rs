@@ -10,6 +10,7 @@ pub mod evaluation;
 pub mod fragment;
 pub mod lcf;
 pub mod policy;
+pub mod q_policy;
 pub mod scenarios;
 pub mod spec;
 pub mod telemetry;

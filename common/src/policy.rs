@@ -1,12 +1,17 @@
-//! The shared policy: a diagonal Gaussian over actions from an MLP, with the observation
-//! normaliser's statistics stored beside the weights so actors normalise exactly as the learner
-//! trained. One parameter set serves every agent (parameter sharing).
+//! The shared policy: a diagonal Gaussian over actions from an MLP (PPO's), or a Q-network over
+//! a grid of actions (DQN's, [`crate::q_policy`]), with the observation normaliser's statistics
+//! stored beside the weights so actors normalise exactly as the learner trained. One parameter
+//! set serves every agent (parameter sharing). Actors, `actor render` and evaluation drive
+//! either kind through the [`Policy`] trait; the blob's metadata says which kind it is.
 
 use std::collections::BTreeMap;
 
+use rand::RngCore;
+use rand_distr::{Distribution, StandardNormal};
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
+use crate::q_policy::QPolicy;
 use crate::spec::OBS_LAYOUT_VERSION;
 use crate::weights::{self, Decoded, WeightsError};
 
@@ -108,6 +113,55 @@ impl ObsNormalizer {
     }
 }
 
+/// The normaliser's statistics as (non-trained) variables of a policy's store, so they travel
+/// in its blob: `obs_norm.{mean,var,count}`.
+#[derive(Debug)]
+pub struct ObsNormTensors {
+    mean: Tensor,
+    var: Tensor,
+    count: Tensor,
+}
+
+impl ObsNormTensors {
+    pub fn new(root: &nn::Path, obs_dim: i64) -> Self {
+        let norm = root / "obs_norm";
+        ObsNormTensors {
+            mean: norm.zeros_no_train("mean", &[obs_dim]),
+            var: norm.ones_no_train("var", &[obs_dim]),
+            count: norm.zeros_no_train("count", &[1]),
+        }
+    }
+
+    /// (obs − mean) / std, clipped: what the network sees.
+    pub fn normalize(&self, obs: &Tensor) -> Tensor {
+        ((obs - &self.mean) / (&self.var + OBS_VAR_EPS).sqrt()).clamp(-OBS_CLIP, OBS_CLIP)
+    }
+
+    pub fn set(&mut self, stats: &ObsNormalizer) {
+        let device = self.mean.device();
+        let to = |v: &[f64]| Tensor::from_slice(v).to_kind(Kind::Float).to_device(device);
+        tch::no_grad(|| {
+            self.mean.copy_(&to(&stats.mean));
+            self.var.copy_(&to(&stats.var));
+            self.count.copy_(&to(&[stats.count]));
+        });
+    }
+
+    pub fn get(&self) -> Result<ObsNormalizer, WeightsError> {
+        let host = |t: &Tensor| -> Result<Vec<f64>, WeightsError> {
+            Ok(Vec::<f32>::try_from(t.to_device(Device::Cpu))?
+                .into_iter()
+                .map(f64::from)
+                .collect())
+        };
+        Ok(ObsNormalizer {
+            mean: host(&self.mean)?,
+            var: host(&self.var)?,
+            count: host(&self.count)?.first().copied().unwrap_or(0.0),
+        })
+    }
+}
+
 /// Version and layout of a weights blob.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PolicyMeta {
@@ -115,20 +169,108 @@ pub struct PolicyMeta {
     pub obs_layout_version: u32,
 }
 
+impl PolicyMeta {
+    pub fn read(decoded: &Decoded) -> Result<Self, WeightsError> {
+        Ok(PolicyMeta {
+            version: decoded.meta("version")?,
+            obs_layout_version: decoded.meta("obs_layout_version")?,
+        })
+    }
+}
+
+/// Metadata key naming the policy kind of a blob; blobs without it are Gaussian (they predate
+/// the Q-policy).
+pub const KIND_KEY: &str = "policy";
+
+/// What actors, `actor render` and evaluation need from a broadcast policy, whatever its kind.
+pub trait Policy: Send + std::fmt::Debug {
+    fn obs_dim(&self) -> usize;
+    /// Values per action (`spec::ACTION_DIM` for every policy the simulator can use).
+    fn action_dim(&self) -> usize;
+    /// Batched behaviour: `obs` row-major [rows][obs_dim]; returns the actions to apply
+    /// [rows][action_dim] and their log-probabilities under this policy, drawing every random
+    /// choice from `rng` (the same draws give the same actions).
+    fn sample(
+        &self,
+        obs: &[f32],
+        rng: &mut dyn RngCore,
+    ) -> Result<(Vec<f32>, Vec<f32>), WeightsError>;
+    /// The deterministic action of each row: the Gaussian's mean, the Q-policy's greedy choice.
+    fn deterministic(&self, obs: &[f32]) -> Result<Vec<f32>, WeightsError>;
+    /// The weights blob broadcast to actors and stored in checkpoints.
+    fn to_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError>;
+}
+
+/// Rebuilds whichever policy a blob holds (its metadata says which), on `device`.
+pub fn decode(bytes: &[u8], device: Device) -> Result<(Box<dyn Policy>, PolicyMeta), WeightsError> {
+    let decoded = Decoded::decode(bytes)?;
+    match decoded.metadata.get(KIND_KEY).map(String::as_str) {
+        None | Some(GaussianPolicy::KIND) => {
+            let (policy, meta) = GaussianPolicy::from_decoded(decoded, device)?;
+            Ok((Box::new(policy), meta))
+        }
+        Some(QPolicy::KIND) => {
+            let (policy, meta) = QPolicy::from_decoded(decoded, device)?;
+            Ok((Box::new(policy), meta))
+        }
+        Some(_) => Err(WeightsError::Metadata {
+            key: KIND_KEY.to_string(),
+        }),
+    }
+}
+
+/// `hidden` metadata: layer sizes joined by commas.
+pub fn hidden_to_meta(hidden: &[i64]) -> String {
+    hidden
+        .iter()
+        .map(i64::to_string)
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// Parses `hidden` metadata; sizes must be positive and sane.
+pub fn hidden_from_meta(decoded: &Decoded) -> Result<Vec<i64>, WeightsError> {
+    let text: String = decoded.meta("hidden")?;
+    text.split(',')
+        .map(|h| {
+            h.parse::<i64>()
+                .ok()
+                .filter(|&h| h > 0 && h <= crate::config::MAX_HIDDEN_WIDTH)
+        })
+        .collect::<Option<Vec<i64>>>()
+        .filter(|h| !h.is_empty() && h.len() <= crate::config::MAX_HIDDEN_LAYERS)
+        .ok_or_else(|| WeightsError::Metadata {
+            key: "hidden".into(),
+        })
+}
+
+/// `obs_dim` metadata, within the fragment limits.
+pub fn obs_dim_from_meta(decoded: &Decoded) -> Result<i64, WeightsError> {
+    let obs_dim: i64 = decoded.meta("obs_dim")?;
+    if obs_dim > 0 && obs_dim as usize <= crate::fragment::MAX_OBS_DIM {
+        Ok(obs_dim)
+    } else {
+        Err(WeightsError::Metadata {
+            key: "obs_dim".into(),
+        })
+    }
+}
+
 #[derive(Debug)]
 pub struct GaussianPolicy {
     vs: nn::VarStore,
     net: Mlp,
     log_std: Tensor,
-    obs_mean: Tensor,
-    obs_var: Tensor,
-    obs_count: Tensor,
+    norm: ObsNormTensors,
     obs_dim: i64,
     action_dim: i64,
     hidden: Vec<i64>,
 }
 
 impl GaussianPolicy {
+    /// [`KIND_KEY`] value of its blobs.
+    pub const KIND: &'static str = "gaussian";
+
     pub fn new(
         device: Device,
         obs_dim: i64,
@@ -144,17 +286,12 @@ impl GaussianPolicy {
             &[action_dim],
             nn::Init::Const(init_log_std),
         );
-        let norm = &root / "obs_norm";
-        let obs_mean = norm.zeros_no_train("mean", &[obs_dim]);
-        let obs_var = norm.ones_no_train("var", &[obs_dim]);
-        let obs_count = norm.zeros_no_train("count", &[1]);
+        let norm = ObsNormTensors::new(&root, obs_dim);
         GaussianPolicy {
             vs,
             net,
             log_std,
-            obs_mean,
-            obs_var,
-            obs_count,
+            norm,
             obs_dim,
             action_dim,
             hidden: hidden.to_vec(),
@@ -179,35 +316,16 @@ impl GaussianPolicy {
     }
 
     pub fn set_obs_stats(&mut self, stats: &ObsNormalizer) {
-        let to = |v: &[f64]| {
-            Tensor::from_slice(v)
-                .to_kind(Kind::Float)
-                .to_device(self.vs.device())
-        };
-        tch::no_grad(|| {
-            self.obs_mean.copy_(&to(&stats.mean));
-            self.obs_var.copy_(&to(&stats.var));
-            self.obs_count.copy_(&to(&[stats.count]));
-        });
+        self.norm.set(stats);
     }
 
     pub fn obs_stats(&self) -> Result<ObsNormalizer, WeightsError> {
-        let host = |t: &Tensor| -> Result<Vec<f64>, WeightsError> {
-            Ok(Vec::<f32>::try_from(t.to_device(Device::Cpu))?
-                .into_iter()
-                .map(f64::from)
-                .collect())
-        };
-        Ok(ObsNormalizer {
-            mean: host(&self.obs_mean)?,
-            var: host(&self.obs_var)?,
-            count: host(&self.obs_count)?.first().copied().unwrap_or(0.0),
-        })
+        self.norm.get()
     }
 
     /// (obs − mean) / std, clipped: what the network sees.
     pub fn normalize(&self, obs: &Tensor) -> Tensor {
-        ((obs - &self.obs_mean) / (&self.obs_var + OBS_VAR_EPS).sqrt()).clamp(-OBS_CLIP, OBS_CLIP)
+        self.norm.normalize(obs)
     }
 
     /// Mean action and log-std (broadcast to the batch) for normalised observations.
@@ -258,14 +376,9 @@ impl GaussianPolicy {
     ) -> Result<Vec<u8>, WeightsError> {
         let named = self.named_tensors();
         let refs: Vec<(String, &Tensor)> = named.iter().map(|(n, t)| (n.clone(), t)).collect();
-        let hidden = self
-            .hidden
-            .iter()
-            .map(i64::to_string)
-            .collect::<Vec<_>>()
-            .join(",");
         let mut metadata = extra;
         metadata.extend([
+            (KIND_KEY.to_string(), Self::KIND.to_string()),
             ("version".to_string(), version.to_string()),
             (
                 "obs_layout_version".to_string(),
@@ -273,7 +386,7 @@ impl GaussianPolicy {
             ),
             ("obs_dim".to_string(), self.obs_dim.to_string()),
             ("action_dim".to_string(), self.action_dim.to_string()),
-            ("hidden".to_string(), hidden),
+            ("hidden".to_string(), hidden_to_meta(&self.hidden)),
         ]);
         weights::encode(&refs, metadata)
     }
@@ -281,45 +394,27 @@ impl GaussianPolicy {
     /// Rebuilds a policy from a blob; the architecture comes from the blob's metadata and every
     /// tensor's shape is checked, so a malformed blob is an error, never a panic.
     pub fn from_bytes(bytes: &[u8], device: Device) -> Result<(Self, PolicyMeta), WeightsError> {
-        let mut decoded = Decoded::decode(bytes)?;
-        let meta = PolicyMeta {
-            version: decoded.meta("version")?,
-            obs_layout_version: decoded.meta("obs_layout_version")?,
-        };
-        let obs_dim: i64 = decoded.meta("obs_dim")?;
+        Self::from_decoded(Decoded::decode(bytes)?, device)
+    }
+
+    fn from_decoded(
+        mut decoded: Decoded,
+        device: Device,
+    ) -> Result<(Self, PolicyMeta), WeightsError> {
+        let meta = PolicyMeta::read(&decoded)?;
+        let obs_dim = obs_dim_from_meta(&decoded)?;
         let action_dim: i64 = decoded.meta("action_dim")?;
-        let hidden_text: String = decoded.meta("hidden")?;
-        let hidden = hidden_text
-            .split(',')
-            .map(|h| {
-                h.parse::<i64>()
-                    .ok()
-                    .filter(|&h| h > 0 && h <= crate::config::MAX_HIDDEN_WIDTH)
-            })
-            .collect::<Option<Vec<i64>>>()
-            .filter(|h| !h.is_empty() && h.len() <= crate::config::MAX_HIDDEN_LAYERS)
-            .ok_or_else(|| WeightsError::Metadata {
-                key: "hidden".into(),
-            })?;
-        let dims_ok = |d: i64, max: usize| d > 0 && d as usize <= max;
-        if !dims_ok(obs_dim, crate::fragment::MAX_OBS_DIM)
-            || !dims_ok(action_dim, crate::fragment::MAX_ACTION_DIM)
-        {
+        let hidden = hidden_from_meta(&decoded)?;
+        if !(action_dim > 0 && action_dim as usize <= crate::fragment::MAX_ACTION_DIM) {
             return Err(WeightsError::Metadata {
-                key: "obs_dim/action_dim".into(),
+                key: "action_dim".into(),
             });
         }
-        // The network is built (allocated) only once the blob is known to hold that many
-        // values: metadata alone must not be able to ask for gigabytes.
-        let needed = parameter_count(obs_dim, action_dim, &hidden);
-        if needed > decoded.total_values() {
-            return Err(WeightsError::Metadata {
-                key: format!(
-                    "hidden (describes {needed} values, the blob holds {})",
-                    decoded.total_values()
-                ),
-            });
-        }
+        // The log-std beside the network and its normaliser.
+        ensure_blob_holds(
+            &decoded,
+            minimum_values(obs_dim, &hidden, action_dim) + action_dim,
+        )?;
         let policy = GaussianPolicy::new(device, obs_dim, action_dim, &hidden, 0.0);
         weights::load_var_store(&policy.vs, &mut decoded)?;
         Ok((policy, meta))
@@ -328,26 +423,72 @@ impl GaussianPolicy {
     /// Loads a blob into this policy (same architecture), e.g. when resuming.
     pub fn load_bytes(&mut self, bytes: &[u8]) -> Result<PolicyMeta, WeightsError> {
         let mut decoded = Decoded::decode(bytes)?;
-        let meta = PolicyMeta {
-            version: decoded.meta("version")?,
-            obs_layout_version: decoded.meta("obs_layout_version")?,
-        };
+        let meta = PolicyMeta::read(&decoded)?;
         weights::load_var_store(&self.vs, &mut decoded)?;
         Ok(meta)
     }
 }
 
-/// Values a policy of these sizes stores: the MLP's weights and biases, the log-std and the
-/// normaliser (mean, variance, count). Inputs are bounded by the callers' checks, so no
-/// overflow.
-fn parameter_count(obs_dim: i64, action_dim: i64, hidden: &[i64]) -> i64 {
-    let mut width = obs_dim;
+/// Values an MLP of these sizes stores (weights and biases). Inputs are bounded by the
+/// metadata checks, so no overflow.
+fn mlp_values(in_dim: i64, hidden: &[i64], out_dim: i64) -> i64 {
+    let mut width = in_dim;
     let mut total = 0;
-    for &size in hidden.iter().chain(std::iter::once(&action_dim)) {
+    for &size in hidden.iter().chain(std::iter::once(&out_dim)) {
         total += width * size + size;
         width = size;
     }
-    total + action_dim + 2 * obs_dim + 1
+    total
+}
+
+/// A network is built (allocated) only once the blob is known to hold at least the `needed`
+/// values its metadata describes: metadata alone must not be able to ask for gigabytes.
+pub(crate) fn ensure_blob_holds(decoded: &Decoded, needed: i64) -> Result<(), WeightsError> {
+    if needed > decoded.total_values() {
+        return Err(WeightsError::Metadata {
+            key: format!(
+                "hidden (describes {needed} values, the blob holds {})",
+                decoded.total_values()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Values a network of `obs_dim` inputs, `hidden` layers and `out_dim` outputs stores at the
+/// least, with its observation normaliser (mean, variance, count).
+pub(crate) fn minimum_values(obs_dim: i64, hidden: &[i64], out_dim: i64) -> i64 {
+    mlp_values(obs_dim, hidden, out_dim) + 2 * obs_dim + 1
+}
+
+impl Policy for GaussianPolicy {
+    fn obs_dim(&self) -> usize {
+        self.obs_dim as usize
+    }
+
+    fn action_dim(&self) -> usize {
+        self.action_dim as usize
+    }
+
+    /// Mean plus standard-normal noise scaled by the std: one draw per action value, row by row.
+    fn sample(
+        &self,
+        obs: &[f32],
+        rng: &mut dyn RngCore,
+    ) -> Result<(Vec<f32>, Vec<f32>), WeightsError> {
+        let values = obs.len() / self.obs_dim as usize * self.action_dim as usize;
+        let noise: Vec<f32> = (0..values).map(|_| StandardNormal.sample(rng)).collect();
+        self.act(obs, &noise)
+    }
+
+    fn deterministic(&self, obs: &[f32]) -> Result<Vec<f32>, WeightsError> {
+        let values = obs.len() / self.obs_dim as usize * self.action_dim as usize;
+        Ok(self.act(obs, &vec![0.0; values])?.0)
+    }
+
+    fn to_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        GaussianPolicy::to_bytes(self, version)
+    }
 }
 
 /// log N(actions | mean, exp(log_std)), summed over action dimensions (in the inputs'

@@ -56,6 +56,9 @@ pub mod names {
     pub const LEARNER_GRAD_NORM: &str = "junction_learner_grad_norm";
     pub const LEARNER_CURRICULUM_STAGE: &str = "junction_learner_curriculum_stage";
     pub const LEARNER_CURRICULUM_AGENTS: &str = "junction_learner_curriculum_agents";
+    pub const LEARNER_Q_MEAN: &str = "junction_learner_q_value_mean";
+    pub const LEARNER_EPSILON: &str = "junction_learner_exploration_epsilon";
+    pub const LEARNER_REPLAY_TRANSITIONS: &str = "junction_learner_replay_transitions";
 
     pub const ACTOR_ENV_STEPS: &str = "junction_actor_env_steps_total";
     pub const ACTOR_AGENT_STEPS: &str = "junction_actor_agent_steps_total";

@@ -6,9 +6,8 @@ use std::time::Instant;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 
-use junction_common::config::RunConfig;
+use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
@@ -22,7 +21,8 @@ pub struct BenchReport {
     pub device: String,
     pub updates: usize,
     pub agent_steps_per_update: usize,
-    pub epochs: usize,
+    /// Gradient passes over each agent-step: PPO's epochs, DQN's replay ratio.
+    pub epochs: f64,
     pub seconds: f64,
     /// Agent-steps through gradient steps per second (each counted once per epoch).
     pub samples_per_s: f64,
@@ -34,7 +34,9 @@ pub struct BenchReport {
 /// centralised critics pay for building their inputs, not a measured count.
 const SYNTHETIC_NEIGHBOURS: usize = 8;
 
-/// One training batch: enough fragments of every agent alive for `train_batch_env_steps`.
+/// One training batch: enough fragments of every agent alive for the algorithm's train batch
+/// (`ppo.train_batch_env_steps`, or `dqn.train_batch_env_steps` for DQN), acted by its policy
+/// (on the DQN's action grid, ε-greedily).
 pub fn synthetic_batch(
     config: &RunConfig,
     algorithm: &dyn Algorithm,
@@ -47,7 +49,7 @@ pub fn synthetic_batch(
     );
     let obs_dim = config.policy_obs_dim();
     let cells = steps * agents;
-    let fragments = config.ppo.train_batch_env_steps.div_ceil(steps);
+    let fragments = config.train_batch_env_steps().div_ceil(steps);
     let per_agent = SYNTHETIC_NEIGHBOURS.min(agents - 1);
     let neighbour_ids: Vec<u32> = (0..cells)
         .flat_map(|cell| (1..=per_agent).map(move |d| ((cell % agents + d) % agents) as u32))
@@ -55,10 +57,7 @@ pub fn synthetic_batch(
     (0..fragments)
         .map(|_| {
             let obs: Vec<f32> = (0..cells * obs_dim).map(|_| rng.r#gen::<f32>()).collect();
-            let noise: Vec<f32> = (0..cells * ACTION_DIM)
-                .map(|_| rng.sample(StandardNormal))
-                .collect();
-            let (actions, log_probs) = algorithm.policy().act(&obs, &noise)?;
+            let (actions, log_probs) = algorithm.policy().sample(&obs, &mut rng)?;
             Ok(RolloutFragment {
                 scenario: config.scenario.name.clone(),
                 steps,
@@ -106,7 +105,10 @@ pub fn run(
         device,
         updates,
         agent_steps_per_update: agent_steps / updates.max(1),
-        epochs: config.ppo.epochs,
+        epochs: match config.learner.algo {
+            AlgoKind::Dqn => f64::from(config.dqn.replay_ratio),
+            _ => config.ppo.epochs as f64,
+        },
         seconds,
         samples_per_s: samples as f64 / seconds,
         agent_steps_per_s: agent_steps as f64 / seconds,
@@ -133,5 +135,27 @@ mod tests {
             let proto = fragment.clone().into_proto();
             assert_eq!(RolloutFragment::from_proto(proto, dims).unwrap(), fragment);
         }
+    }
+
+    #[test]
+    fn dqn_benches_its_own_batch_size_on_its_grid_and_trains() {
+        let mut config = RunConfig::default();
+        config.learner.algo = AlgoKind::Dqn;
+        config.dqn.hidden = vec![8];
+        config.dqn.batch_size = 16;
+        config.dqn.learning_starts = 1;
+        config.scenario.agents = 2;
+        config.rollout.fragment_length = 10;
+        config.dqn.train_batch_env_steps = 15;
+        let mut dqn = crate::algo::build(&config, tch::Device::Cpu).unwrap();
+        let batch = synthetic_batch(&config, dqn.as_ref(), 1).unwrap();
+        assert_eq!(batch.len(), 2, "15 env steps need 2 fragments of 10");
+        let stats = dqn.update(&batch).unwrap();
+        assert_eq!(stats.off_grid_fragments, 0, "the bench acts on the grid");
+        // 40 transitions × 32 / 16 = 80 gradient steps of 16.
+        assert_eq!((stats.agent_steps, stats.samples_trained), (40, 1280));
+        let report = run(&config, dqn.as_mut(), "Cpu".into(), 1).unwrap();
+        assert_eq!((report.algo, report.epochs), ("dqn", 32.0));
+        assert!(report.samples_per_s > 0.0);
     }
 }

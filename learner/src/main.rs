@@ -46,8 +46,8 @@ enum Command {
     /// Print the effective configuration as TOML (or, with --defaults, the annotated defaults).
     Config(ConfigArgs),
     /// Time the training update alone on synthetic fragments of the run's shape (scenario
-    /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update) and print one
-    /// JSON line with samples_per_s.
+    /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update, or
+    /// dqn.train_batch_env_steps for dqn) and print one JSON line with samples_per_s.
     Bench(BenchArgs),
     /// Report finished runs offline: a Markdown table like the paper's Table 1 per scene
     /// (methods as columns, mean ± 95 % CI over seeds, from `actor eval` results in
@@ -85,7 +85,8 @@ struct ReportArgs {
 struct BenchArgs {
     #[command(flatten)]
     source: ConfigSource,
-    /// Algorithm to time [config: learner.algo, default ippo].
+    /// Algorithm to time: ippo, cl, ccppo-mf, ccppo-concat or dqn [config: learner.algo,
+    /// default ippo].
     #[arg(long)]
     algo: Option<String>,
     /// Timed updates (after one untimed warm-up update).
@@ -226,7 +227,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let mut algorithm = algo::build(&config, device);
+    let mut algorithm = algo::build(&config, device).context("building the algorithm")?;
     let report = junction_learner::bench::run(
         &config,
         algorithm.as_mut(),
@@ -316,7 +317,11 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let device = resolve_device(config.learner.device);
     let (algorithm, progress, actors_registered) = match &resume {
         Some(candidates) => restore_newest(candidates, &config, device)?,
-        None => (algo::build(&config, device), Progress::default(), 0),
+        None => (
+            algo::build(&config, device).context("building the algorithm")?,
+            Progress::default(),
+            0,
+        ),
     };
 
     // The stage follows from the restored agent-steps: a resumed run continues in its stage.
@@ -442,7 +447,7 @@ fn restore_newest(
     device: tch::Device,
 ) -> anyhow::Result<(Box<dyn algo::Algorithm + Send>, Progress, u64)> {
     for path in candidates {
-        let mut algorithm = algo::build(config, device);
+        let mut algorithm = algo::build(config, device).context("building the algorithm")?;
         match restore(path, algorithm.as_mut()) {
             Ok(meta) => {
                 tracing::info!(path = %path.display(), version = meta.version, "resumed");

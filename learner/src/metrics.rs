@@ -23,8 +23,10 @@ pub const DROP_STALE: &str = "stale";
 pub const DROP_SHUTDOWN: &str = "shutdown";
 /// In a batch whose update failed (e.g. no alive agent in it, or a libtorch error).
 pub const DROP_UPDATE_FAILED: &str = "update_failed";
+/// Actions off the DQN's action grid (the algorithm cannot train on them).
+pub const DROP_OFF_GRID: &str = "off_grid";
 /// Every drop reason, initialised at zero.
-pub const DROP_REASONS: [&str; 3] = [DROP_STALE, DROP_SHUTDOWN, DROP_UPDATE_FAILED];
+pub const DROP_REASONS: [&str; 4] = [DROP_STALE, DROP_SHUTDOWN, DROP_UPDATE_FAILED, DROP_OFF_GRID];
 /// `reason` of RPCs refused before the handler: no or a wrong token, or too many streams.
 pub const REFUSED_UNAUTHENTICATED: &str = "unauthenticated";
 pub const REFUSED_STREAM_LIMIT: &str = "stream_limit";
@@ -76,6 +78,9 @@ pub struct LearnerMetrics {
     grad_norm: Gauge,
     curriculum_stage: IntGauge,
     curriculum_agents: IntGauge,
+    q_mean: Gauge,
+    epsilon: Gauge,
+    replay_transitions: IntGauge,
 }
 
 impl LearnerMetrics {
@@ -163,7 +168,7 @@ impl LearnerMetrics {
             )?,
             fragments_dropped: counter_vec(
                 names::LEARNER_FRAGMENTS_DROPPED,
-                "Accepted fragments not trained on, by reason (stale: more than max_policy_lag versions off; shutdown: queued or batched when the run ended; update_failed).",
+                "Accepted fragments not trained on, by reason (stale: more than max_policy_lag versions off; shutdown: queued or batched when the run ended; update_failed; off_grid: actions off the DQN's action grid).",
                 &["reason"],
             )?,
             agent_steps_accepted: counter(
@@ -297,6 +302,18 @@ impl LearnerMetrics {
                 names::LEARNER_CURRICULUM_AGENTS,
                 "Learning agents per scene that actors are told to simulate.",
             )?,
+            q_mean: gauge(
+                names::LEARNER_Q_MEAN,
+                "DQN: mean Q(s, a) of the transitions sampled in the last update (0 for PPO).",
+            )?,
+            epsilon: gauge(
+                names::LEARNER_EPSILON,
+                "DQN: exploration rate epsilon broadcast after the last update (0 for PPO and before the first update).",
+            )?,
+            replay_transitions: int_gauge(
+                names::LEARNER_REPLAY_TRANSITIONS,
+                "DQN: agent transitions held in the replay buffer (0 for PPO).",
+            )?,
             registry,
         })
     }
@@ -392,6 +409,10 @@ impl LearnerMetrics {
         self.clip_fraction.set(stats.clip_fraction);
         self.explained_variance.set(stats.explained_variance);
         self.grad_norm.set(stats.grad_norm);
+        self.q_mean.set(stats.q_mean);
+        self.epsilon.set(stats.epsilon);
+        self.replay_transitions
+            .set(i64::try_from(stats.replay_transitions).unwrap_or(i64::MAX));
     }
 
     pub fn record_stage(&self, stage: Stage) {

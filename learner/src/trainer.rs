@@ -118,6 +118,7 @@ impl Trainer {
             started,
         };
         let start_progress = self.progress;
+        let mut refusals_logged = std::collections::HashSet::new();
         // A resumed run answers Status with its restored counters from the start.
         self.publish_status(&reporter, &window.summary());
         let _span = tracing::info_span!("trainer", algorithm = self.algorithm.name()).entered();
@@ -155,6 +156,15 @@ impl Trainer {
                     if lag > config.learner.max_policy_lag {
                         metrics.record_drop(DROP_STALE, std::slice::from_ref(&fragment));
                         tracing::debug!(lag, actor = %fragment.actor_id, "dropped stale fragment");
+                    } else if let Some(reason) = self.algorithm.refusal(&fragment) {
+                        metrics.record_drop(reason, std::slice::from_ref(&fragment));
+                        if refusals_logged.insert(reason) {
+                            tracing::warn!(
+                                reason,
+                                actor = %fragment.actor_id,
+                                "the algorithm cannot train on this fragment: counted as dropped (further drops of this reason are only counted)"
+                            );
+                        }
                     } else {
                         pending_env_steps += fragment.steps;
                         pending.push(fragment);
@@ -163,7 +173,7 @@ impl Trainer {
                 Ok(None) => break,
                 Err(_) => {}
             }
-            if pending_env_steps >= config.ppo.train_batch_env_steps {
+            if pending_env_steps >= config.train_batch_env_steps() {
                 if let Some(stats) = self.update(&pending)? {
                     reporter.lcf.get_or_insert_default().record(&stats);
                 }
@@ -527,7 +537,7 @@ mod tests {
             .unwrap();
         // As on the learner's blocking thread: inside the runtime's context.
         let _context = runtime.enter();
-        let algorithm = algo::build(&config, tch::Device::Cpu);
+        let algorithm = algo::build(&config, tch::Device::Cpu).unwrap();
         let initial = weights_message(algorithm.as_ref(), 0, 1, false).unwrap();
         let metrics = LearnerMetrics::new().unwrap();
         let shared = Arc::new(Shared::new(config.clone(), metrics, initial));

@@ -117,6 +117,12 @@ fn every_dashboard_panel_returns_data_from_a_real_prometheus() {
     .expect("dashboard JSON");
     let queries = dashboard_queries(&dashboard);
     assert!(queries.len() >= 20, "only {} queries", queries.len());
+    // Grafana keys panels by id: a repeated one makes it drop or mix panels.
+    let mut ids = std::collections::BTreeSet::new();
+    for panel in dashboard["panels"].as_array().expect("dashboard panels") {
+        let id = panel["id"].as_u64().expect("every panel has a numeric id");
+        assert!(ids.insert(id), "panel id {id} is used twice");
+    }
 
     let dir = TempDir::new("prometheus");
     let run_dir = dir.path().join("run");

@@ -175,7 +175,6 @@ pub fn assemble(
     let mut obs = Vec::with_capacity(alive_rows * obs_dim);
     let mut actions = Vec::new();
     let mut old_log_probs = Vec::new();
-    let mut neighbour_counts = Vec::with_capacity(alive_rows);
     for f in fragments {
         for t in 0..f.steps {
             for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
@@ -184,7 +183,6 @@ pub fn assemble(
                 actions
                     .extend_from_slice(&f.actions[cell * f.action_dim..(cell + 1) * f.action_dim]);
                 old_log_probs.push(f.log_probs[cell]);
-                neighbour_counts.push(live_neighbours(f, t, slot).count());
             }
         }
     }
@@ -194,9 +192,23 @@ pub fn assemble(
         actions: to(&actions).reshape([n, action_dim as i64]),
         old_log_probs: to(&old_log_probs),
         heads: estimates,
-        neighbour_counts,
+        neighbour_counts: alive_neighbour_counts(fragments),
         len: alive_rows,
     })
+}
+
+/// Live neighbours of every alive cell's agent, in (fragment, step, slot) order: the rows of
+/// a batch.
+pub fn alive_neighbour_counts(fragments: &[RolloutFragment]) -> Vec<usize> {
+    let mut counts = Vec::new();
+    for f in fragments {
+        for t in 0..f.steps {
+            for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
+                counts.push(live_neighbours(f, t, slot).count());
+            }
+        }
+    }
+    counts
 }
 
 /// Neighbours of `slot` at step `t` (nearest first) that hold an agent at `t`.

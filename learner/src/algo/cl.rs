@@ -12,7 +12,7 @@ use tch::Tensor;
 
 use junction_common::config::CurriculumConfig;
 use junction_common::fragment::RolloutFragment;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::Policy;
 use junction_common::weights::{Decoded, WeightsError};
 
 use super::ippo::Ippo;
@@ -77,7 +77,7 @@ impl Algorithm for Cl {
         "cl"
     }
 
-    fn policy(&self) -> &GaussianPolicy {
+    fn policy(&self) -> &dyn Policy {
         self.ippo.policy()
     }
 
@@ -168,7 +168,7 @@ mod tests {
         );
         let mut config = config;
         config.ppo.hidden = vec![8];
-        let ippo = super::super::build(&config, tch::Device::Cpu);
+        let ippo = super::super::build(&config, tch::Device::Cpu).unwrap();
         assert_eq!(
             ippo.stage(0, 30),
             Stage {
@@ -177,7 +177,7 @@ mod tests {
             }
         );
         config.learner.algo = junction_common::config::AlgoKind::Cl;
-        let cl = super::super::build(&config, tch::Device::Cpu);
+        let cl = super::super::build(&config, tch::Device::Cpu).unwrap();
         assert_eq!(cl.name(), "cl");
         assert_eq!(
             cl.stage(0, 30),

@@ -38,7 +38,7 @@ mod tests {
     use crate::algo::shared_ppo::testing::ippo;
     use junction_common::config::RunConfig;
     use junction_common::fragment::RolloutFragment;
-    use junction_common::policy::GaussianPolicy;
+    use junction_common::policy::Policy;
     use junction_common::weights::{self, Decoded};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
@@ -46,15 +46,12 @@ mod tests {
 
     /// A one-step bandit: a single slot, observation constant, reward = −(a₀ − 0.5)². PPO must
     /// move the mean action towards 0.5.
-    fn bandit_fragment(policy: &GaussianPolicy, rng_seed: u64) -> RolloutFragment {
+    fn bandit_fragment(policy: &dyn Policy, rng_seed: u64) -> RolloutFragment {
         let agents = 64;
         let obs_dim = policy.obs_dim();
         let obs = vec![0.5f32; agents * obs_dim];
         let mut rng = ChaCha8Rng::seed_from_u64(rng_seed);
-        let noise: Vec<f32> = (0..agents * 2)
-            .map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng))
-            .collect();
-        let (actions, log_probs) = policy.act(&obs, &noise).unwrap();
+        let (actions, log_probs) = policy.sample(&obs, &mut rng).unwrap();
         let rewards = (0..agents)
             .map(|i| -(actions[2 * i] - 0.5).powi(2))
             .collect();
@@ -76,11 +73,10 @@ mod tests {
         }
     }
 
-    fn mean_action(policy: &GaussianPolicy) -> f32 {
+    fn mean_action(policy: &dyn Policy) -> f32 {
         policy
-            .act(&vec![0.5f32; policy.obs_dim()], &[0.0, 0.0])
-            .unwrap()
-            .0[0]
+            .deterministic(&vec![0.5f32; policy.obs_dim()])
+            .unwrap()[0]
     }
 
     #[test]

@@ -7,11 +7,13 @@ pub mod ccppo_mf;
 pub mod cl;
 pub mod coordination;
 pub mod copo;
+pub mod dqn;
 pub mod dynamic_lcf;
 pub mod gae;
 pub mod ippo;
 pub mod meta_lcf;
 pub mod ppo;
+pub mod replay;
 pub mod safety;
 pub mod shared_ppo;
 
@@ -20,7 +22,8 @@ use tch::{Device, Tensor};
 use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
-use junction_common::policy::GaussianPolicy;
+use junction_common::policy::Policy;
+use junction_common::q_policy::GridError;
 use junction_common::spec::ACTION_DIM;
 use junction_common::weights::{Decoded, WeightsError};
 
@@ -30,7 +33,8 @@ use coordination::{Coordination, FixedLcf};
 use ippo::OwnObservation;
 use shared_ppo::SharedPpo;
 
-/// Diagnostics of one policy update, averaged over its minibatches.
+/// Diagnostics of one policy update, averaged over its minibatches (DQN: over its gradient
+/// steps; its TD loss is `value_loss`).
 #[derive(Debug, Clone, Default)]
 pub struct UpdateStats {
     pub agent_steps: usize,
@@ -55,6 +59,14 @@ pub struct UpdateStats {
     pub lagrange_multiplier: f64,
     /// Minibatches skipped because their loss was NaN or infinite.
     pub skipped_minibatches: usize,
+    /// DQN: mean Q(s, a) of the sampled transitions (0 for PPO).
+    pub q_mean: f64,
+    /// DQN: the exploration rate broadcast with the new weights (0 for PPO).
+    pub epsilon: f64,
+    /// DQN: transitions in the replay buffer after the update (0 for PPO).
+    pub replay_transitions: usize,
+    /// Fragments not trained on because their actions are off the algorithm's action grid.
+    pub off_grid_fragments: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -65,6 +77,8 @@ pub enum AlgoError {
     Weights(#[from] WeightsError),
     #[error("an update needs at least one fragment with an alive agent")]
     EmptyBatch,
+    #[error("{0}")]
+    Grid(#[from] GridError),
 }
 
 /// A curriculum stage: its index and the learning agents each scene simulates in it.
@@ -78,11 +92,16 @@ pub struct Stage {
 pub trait Algorithm {
     fn name(&self) -> &'static str;
     /// The policy actors run (broadcast after every update).
-    fn policy(&self) -> &GaussianPolicy;
+    fn policy(&self) -> &dyn Policy;
     /// The policy's blob for broadcasts and checkpoints, with whatever metadata actors need to
     /// run it (CoPO: its LCF distribution).
     fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
         self.policy().to_bytes(version)
+    }
+    /// Why this algorithm cannot train on `fragment` (a drop reason of
+    /// `junction_learner_fragments_dropped_total`), checked as it arrives; None: it can.
+    fn refusal(&self, _fragment: &RolloutFragment) -> Option<&'static str> {
+        None
     }
     /// One update on a batch of fragments.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;
@@ -103,7 +122,7 @@ pub trait Algorithm {
 }
 
 /// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
-pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
+pub fn build(config: &RunConfig, device: Device) -> Result<Box<dyn Algorithm + Send>, AlgoError> {
     let obs_dim = config.policy_obs_dim();
     let ppo = |name, input, coordination: Box<dyn Coordination>| {
         SharedPpo::new(
@@ -117,7 +136,7 @@ pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
         )
     };
     let fixed = || Box::new(FixedLcf::new(&config.lcf));
-    match config.learner.algo {
+    Ok(match config.learner.algo {
         AlgoKind::Ippo => Box::new(ppo("ippo", OwnObservation, fixed())),
         AlgoKind::Cl => Box::new(cl::Cl::new(
             ppo("ippo", OwnObservation, fixed()),
@@ -157,5 +176,9 @@ pub fn build(config: &RunConfig, device: Device) -> Box<dyn Algorithm + Send> {
                 device,
             )),
         )),
-    }
+        AlgoKind::Dqn => Box::new(
+            dqn::Dqn::new(&config.dqn, obs_dim, device, config.run.seed)?
+                .with_coordination(&config.lcf),
+        ),
+    })
 }

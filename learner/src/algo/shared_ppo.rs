@@ -27,7 +27,7 @@ use tch::{Device, Kind, Tensor};
 
 use junction_common::config::{PpoConfig, RunConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
-use junction_common::policy::{GaussianPolicy, Mlp, gaussian_entropy, gaussian_log_prob};
+use junction_common::policy::{GaussianPolicy, Mlp, Policy, gaussian_entropy, gaussian_log_prob};
 use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::batch::{
@@ -135,7 +135,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         self.name
     }
 
-    fn policy(&self) -> &GaussianPolicy {
+    fn policy(&self) -> &dyn Policy {
         &self.policy
     }
 
