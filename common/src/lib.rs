@@ -7,6 +7,8 @@ pub mod fragment;
 pub mod lcf;
 pub mod policy;
 pub mod scenarios;
+pub mod shm;
+pub mod shm_layout;
 pub mod spec;
 pub mod telemetry;
 pub mod weights;
