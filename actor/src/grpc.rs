@@ -1,5 +1,5 @@
 //! The actor side of the gRPC transport: register, follow the policy stream, and push
-//! fragments produced by the rollout thread.
+//! fragments produced by the rollout thread (`session`).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -10,27 +10,11 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::{Channel, Endpoint};
 
-use junction_common::config::ScenarioConfig;
 use junction_common::fragment::PROTOCOL_VERSION;
-use junction_common::policy::GaussianPolicy;
 use junction_common::proto::{self, learner_client::LearnerClient};
-use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::metrics::ActorMetrics;
-use crate::rollout::{RolloutWorker, derive_seed};
-
-/// Fragments buffered between the rollout thread and the push stream; when full, the rollout
-/// thread waits (the learner's backpressure reaches the simulator).
-const OUTBOX_FRAGMENTS: usize = 4;
-
-pub struct ActorOptions {
-    pub learner: String,
-    pub name: String,
-    pub scenes: usize,
-    pub seed: u64,
-    pub connect_timeout: Duration,
-    pub max_message_bytes: usize,
-}
+use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
 
 /// Connects, retrying with exponential back-off until `timeout` has passed.
 async fn connect(url: &str, timeout: Duration) -> anyhow::Result<Channel> {
@@ -56,11 +40,16 @@ async fn connect(url: &str, timeout: Duration) -> anyhow::Result<Channel> {
 }
 
 /// Runs until the learner says the run is finished (Ok) or the connection fails (Err).
-pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::Result<()> {
-    let channel = connect(&options.learner, options.connect_timeout).await?;
+pub async fn run(
+    url: &str,
+    max_message_bytes: usize,
+    options: ActorOptions,
+    metrics: Arc<ActorMetrics>,
+) -> anyhow::Result<()> {
+    let channel = connect(url, options.connect_timeout).await?;
     let mut client = LearnerClient::new(channel)
-        .max_decoding_message_size(options.max_message_bytes)
-        .max_encoding_message_size(options.max_message_bytes);
+        .max_decoding_message_size(max_message_bytes)
+        .max_encoding_message_size(max_message_bytes);
     let reply = client
         .register(proto::RegisterRequest {
             protocol_version: PROTOCOL_VERSION,
@@ -70,36 +59,15 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
         .await
         .context("registering with the learner")?
         .into_inner();
-    if reply.protocol_version != PROTOCOL_VERSION || reply.obs_layout_version != OBS_LAYOUT_VERSION
-    {
-        bail!(
-            "the learner speaks protocol {} with observation layout {}; this actor speaks {} with {}",
-            reply.protocol_version,
-            reply.obs_layout_version,
-            PROTOCOL_VERSION,
-            OBS_LAYOUT_VERSION
-        );
-    }
-    let scenario =
-        ScenarioConfig::from_toml(&reply.scenario_toml).context("the learner's scenario")?;
-    if reply.obs_dim as usize != scenario.obs_dim() || reply.action_dim as usize != ACTION_DIM {
-        bail!(
-            "the learner's dimensions {}×{} do not match its scenario",
-            reply.obs_dim,
-            reply.action_dim
-        );
-    }
-    let actor_id = reply.actor_id.clone();
-    tracing::Span::current()
-        .record("id", actor_id.as_str())
-        .record("scenario", scenario.name.as_str());
+    let run = RunInfo::from_reply(&reply)?;
+    run.record_in_span();
     tracing::info!(scenes = options.scenes, "registered");
 
     // Policy stream → latest weights; the rollout thread picks them up between fragments.
     let mut policy_stream = client
         .watch_policy(proto::WatchPolicyRequest {
             protocol_version: PROTOCOL_VERSION,
-            actor_id: actor_id.clone(),
+            actor_id: run.actor_id.clone(),
             have_version: 0,
         })
         .await
@@ -135,31 +103,28 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
     };
 
     let (outbox_tx, outbox_rx) = mpsc::channel::<proto::RolloutFragment>(OUTBOX_FRAGMENTS);
-    let seed = derive_seed(
-        reply.run_seed ^ options.seed,
-        reply.actor_id.bytes().map(u64::from).sum(),
-    );
+    let busy_tracker = tokio::spawn(count_runtime_busy_time(Arc::clone(&metrics)));
+    let seed = run.seed(options.seed);
     let rollout = {
         let finished = Arc::clone(&finished);
         let metrics = Arc::clone(&metrics);
-        let fragment_length = reply.fragment_length as usize;
         let scenes = options.scenes;
         tokio::task::spawn_blocking(move || {
-            rollout_loop(
-                scenario,
-                scenes,
-                seed,
-                fragment_length,
-                actor_id,
-                weights_rx,
-                outbox_tx,
-                finished,
-                &metrics,
-            )
+            let send = |fragment: junction_common::fragment::RolloutFragment| {
+                let started = Instant::now();
+                let message = fragment.into_proto();
+                metrics
+                    .transport_seconds
+                    .inc_by(started.elapsed().as_secs_f64());
+                // Err: the push stream is gone (learner finished or failed); the caller says why.
+                outbox_tx.blocking_send(message).is_ok()
+            };
+            rollout_loop(run, scenes, seed, weights_rx, send, &finished, &metrics)
         })
     };
     let pushed = client.push_rollouts(ReceiverStream::new(outbox_rx)).await;
     let rollout_result = rollout.await.context("rollout thread panicked")?;
+    busy_tracker.abort();
     match pushed {
         Ok(summary) => {
             let s = summary.into_inner();
@@ -188,92 +153,23 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
     Ok(())
 }
 
-/// Simulates the agent count the learner's curriculum asks for with `weights`.
-fn apply_active_agents(
-    worker: &mut RolloutWorker,
-    weights: &proto::PolicyWeights,
-    metrics: &ActorMetrics,
-) -> anyhow::Result<()> {
-    let before = worker.active_agents();
-    let requested = usize::try_from(weights.active_agents).unwrap_or(usize::MAX);
-    if worker
-        .set_active_agents(requested)
-        .context("rebuilding the scenes for the curriculum's agent count")?
-    {
-        tracing::info!(
-            old_agents = before,
-            new_agents = worker.active_agents(),
-            version = weights.version,
-            "scenes rebuilt with the curriculum's agent count"
-        );
-    }
-    metrics.scene_agents.set(worker.active_agents() as i64);
-    Ok(())
-}
-
-#[allow(clippy::too_many_arguments)]
-fn rollout_loop(
-    scenario: ScenarioConfig,
-    scenes: usize,
-    seed: u64,
-    fragment_length: usize,
-    actor_id: String,
-    mut weights: watch::Receiver<Arc<proto::PolicyWeights>>,
-    outbox: mpsc::Sender<proto::RolloutFragment>,
-    finished: Arc<AtomicBool>,
-    metrics: &ActorMetrics,
-) -> anyhow::Result<()> {
-    let _span =
-        tracing::info_span!("rollout", actor = %actor_id, scenario = %scenario.name).entered();
-    let load = |w: &proto::PolicyWeights| -> anyhow::Result<GaussianPolicy> {
-        let (policy, meta) = GaussianPolicy::from_bytes(&w.data, tch::Device::Cpu)
-            .context("decoding policy weights")?;
-        if meta.obs_layout_version != OBS_LAYOUT_VERSION || policy.obs_dim() != scenario.obs_dim() {
-            bail!(
-                "policy v{} was trained for another observation layout or size",
-                w.version
-            );
-        }
-        Ok(policy)
+/// Adds the async runtime's busy time to the transport time every second: in a gRPC actor
+/// the runtime does nothing but the transport (protobuf encoding, HTTP/2, sockets, the policy
+/// stream).
+async fn count_runtime_busy_time(metrics: Arc<ActorMetrics>) {
+    let runtime = tokio::runtime::Handle::current().metrics();
+    let busy = || -> Duration {
+        (0..runtime.num_workers())
+            .map(|w| runtime.worker_total_busy_duration(w))
+            .sum()
     };
-    let initial = Arc::clone(&weights.borrow_and_update());
-    let mut worker = RolloutWorker::new(
-        &scenario,
-        scenes,
-        seed,
-        fragment_length,
-        load(&initial)?,
-        initial.version,
-        actor_id,
-    )
-    .context("building the scenes")?;
-    metrics.policy_version.set(initial.version as i64);
-    apply_active_agents(&mut worker, &initial, metrics)?;
-    while !finished.load(Ordering::Relaxed) {
-        if weights.has_changed().unwrap_or(false) {
-            let latest = Arc::clone(&weights.borrow_and_update());
-            if latest.version != worker.policy_version() {
-                worker.set_policy(load(&latest)?, latest.version);
-                metrics.policy_version.set(latest.version as i64);
-                metrics.policy_switches.inc();
-                tracing::debug!(version = latest.version, "switched policy");
-            }
-            apply_active_agents(&mut worker, &latest, metrics)?;
-        }
-        let _collect =
-            tracing::info_span!("collect", policy_version = worker.policy_version()).entered();
-        let (fragments, timings) = worker.collect().context("policy inference")?;
-        metrics.inference_seconds.inc_by(timings.inference_s);
-        metrics.simulation_seconds.inc_by(timings.simulation_s);
-        for fragment in fragments {
-            metrics.env_steps.inc_by(fragment.steps as u64);
-            metrics.agent_steps.inc_by(fragment.agent_steps() as u64);
-            if outbox.blocking_send(fragment.into_proto()).is_err() {
-                // The push stream is gone (learner finished or failed); the caller reports why.
-                return Ok(());
-            }
-            metrics.fragments_sent.inc();
-        }
+    let mut counted = busy();
+    loop {
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        let now = busy();
+        metrics
+            .transport_seconds
+            .inc_by(now.saturating_sub(counted).as_secs_f64());
+        counted = now;
     }
-    Ok(())
 }

@@ -7,4 +7,6 @@ pub mod metrics;
 pub mod render;
 pub mod replay;
 pub mod rollout;
+pub mod session;
+pub mod shm;
 pub mod sim;

@@ -11,7 +11,8 @@ use tracing::Instrument;
 
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
-use junction_actor::{bench, grpc};
+use junction_actor::session::ActorOptions;
+use junction_actor::{bench, grpc, shm};
 use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 
@@ -45,7 +46,8 @@ enum Command {
 
 #[derive(Args)]
 struct RunArgs {
-    /// The learner's gRPC address.
+    /// The learner: its gRPC address (http://HOST:PORT), or shm://NAME for the learner on
+    /// this host serving shared memory as NAME (its server.shm_name).
     #[arg(
         long,
         value_name = "URL",
@@ -69,7 +71,7 @@ struct RunArgs {
     /// Keep retrying the first connection to the learner for this many seconds.
     #[arg(long, value_name = "SECONDS", default_value_t = 60.0)]
     connect_timeout: f64,
-    /// Largest gRPC message sent or accepted, in bytes.
+    /// Largest gRPC message sent or accepted, in bytes (gRPC only).
     #[arg(long, default_value_t = 64 << 20)]
     max_message_bytes: usize,
     /// Name shown in the learner's logs [default: <hostname>/<pid>].
@@ -243,25 +245,29 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
             None => None,
         };
         let hostname = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
-        let options = grpc::ActorOptions {
-            learner: args.learner,
+        let options = ActorOptions {
             name: args
                 .name
                 .unwrap_or_else(|| format!("{}/{}", hostname.trim(), std::process::id())),
             scenes: args.scenes as usize,
             seed: args.seed,
             connect_timeout: Duration::from_secs_f64(args.connect_timeout.max(0.0)),
-            max_message_bytes: args.max_message_bytes,
         };
         let span = tracing::info_span!(
             "actor",
             id = tracing::field::Empty,
             scenario = tracing::field::Empty
         );
+        let transport = async {
+            match args.learner.strip_prefix("shm://") {
+                Some(name) => shm::run(name, options, metrics).await,
+                None => grpc::run(&args.learner, args.max_message_bytes, options, metrics).await,
+            }
+        };
         let result = tokio::select! {
-            result = grpc::run(options, metrics).instrument(span) => result,
-            _ = tokio::signal::ctrl_c() => {
-                tracing::info!("interrupted");
+            result = transport.instrument(span) => result,
+            signal = stop_signal() => {
+                tracing::info!(signal, "interrupted");
                 Ok(())
             }
         };
@@ -271,4 +277,20 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
         }
         result
     })
+}
+
+/// Ctrl-C or SIGTERM (what `docker stop` and a supervising learner send).
+async fn stop_signal() -> &'static str {
+    let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(term) => term,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot listen for SIGTERM");
+            let _ = tokio::signal::ctrl_c().await;
+            return "SIGINT";
+        }
+    };
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => "SIGINT",
+        _ = term.recv() => "SIGTERM",
+    }
 }

@@ -13,6 +13,7 @@ pub struct ActorMetrics {
     pub policy_switches: IntCounter,
     pub inference_seconds: Counter,
     pub simulation_seconds: Counter,
+    pub transport_seconds: Counter,
     pub scene_agents: IntGauge,
 }
 
@@ -59,8 +60,25 @@ impl ActorMetrics {
                 names::ACTOR_SIMULATION_SECONDS,
                 "Time spent stepping scenes.",
             )?,
+            transport_seconds: seconds(
+                names::ACTOR_TRANSPORT_SECONDS,
+                "CPU time spent moving fragments and weights (encoding, shared memory or gRPC).",
+            )?,
             scene_agents,
             registry,
         })
     }
+}
+
+/// CPU time the calling thread has used so far, in seconds (0 if the clock is unavailable).
+pub fn thread_cpu_seconds() -> f64 {
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec, which we own.
+    if unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut now) } != 0 {
+        return 0.0;
+    }
+    now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9
 }

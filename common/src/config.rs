@@ -342,6 +342,9 @@ pub struct ServerSection {
     pub addr: String,
     pub metrics_addr: String,
     pub max_message_bytes: usize,
+    /// Base name of the shared-memory services; empty: shared memory off.
+    pub shm_name: String,
+    pub shm_max_actors: usize,
 }
 
 impl Default for RunConfig {
@@ -453,6 +456,16 @@ impl RunConfig {
         if self.run.stats_window_episodes == 0 || self.run.keep_checkpoints == 0 {
             problems
                 .push("run.stats_window_episodes and run.keep_checkpoints must be > 0".to_string());
+        }
+        let shm = &self.server;
+        if !shm.shm_name.is_empty() && !crate::shm::is_valid_name(&shm.shm_name) {
+            problems.push(format!(
+                "server.shm_name {:?} may only hold letters, digits, '-', '_' and '.' (at most 200), or be \"\" for no shared memory",
+                shm.shm_name
+            ));
+        }
+        if !(1..=1024).contains(&shm.shm_max_actors) {
+            problems.push("server.shm_max_actors must be in 1..=1024".to_string());
         }
         if self.run.progress_interval_s <= 0.0 {
             problems.push("run.progress_interval_s must be > 0".to_string());

@@ -212,16 +212,10 @@ impl RolloutFragment {
             return shape(format!("steps = {} (must be 1..={MAX_STEPS})", steps));
         }
         if agents == 0 || agents > MAX_AGENTS {
-            return shape(format!(
-                "agents = {} (must be 1..={MAX_AGENTS})",
-                agents
-            ));
+            return shape(format!("agents = {} (must be 1..={MAX_AGENTS})", agents));
         }
         if obs_dim == 0 || obs_dim > MAX_OBS_DIM {
-            return shape(format!(
-                "obs_dim = {} (must be 1..={MAX_OBS_DIM})",
-                obs_dim
-            ));
+            return shape(format!("obs_dim = {} (must be 1..={MAX_OBS_DIM})", obs_dim));
         }
         if action_dim == 0 || action_dim > MAX_ACTION_DIM {
             return shape(format!(
@@ -229,12 +223,12 @@ impl RolloutFragment {
                 action_dim
             ));
         }
-        if let Some((want_obs, want_action)) = expected_dims {
-            if (obs_dim, action_dim) != (want_obs, want_action) {
-                return shape(format!(
-                    "obs_dim × action_dim = {obs_dim} × {action_dim}, the run expects {want_obs} × {want_action}"
-                ));
-            }
+        if let Some((want_obs, want_action)) = expected_dims
+            && (obs_dim, action_dim) != (want_obs, want_action)
+        {
+            return shape(format!(
+                "obs_dim × action_dim = {obs_dim} × {action_dim}, the run expects {want_obs} × {want_action}"
+            ));
         }
         Ok(())
     }

@@ -101,6 +101,14 @@ pub enum Side {
     Actor,
 }
 
+/// A base name for the services: 1 to 200 letters, digits, '-', '_' or '.'.
+pub fn is_valid_name(base: &str) -> bool {
+    (1..=200).contains(&base.len())
+        && base
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+}
+
 /// The three services of base name `base`.
 pub struct Names {
     pub fragments: ServiceName,
@@ -110,17 +118,12 @@ pub struct Names {
 
 impl Names {
     pub fn new(base: &str) -> Result<Self, ShmError> {
-        let valid = !base.is_empty()
-            && base.len() <= 200
-            && base
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
         let name = |suffix: &str| {
             ServiceName::new(&format!("junction/{base}/{suffix}")).map_err(|_| ShmError::Name {
                 name: base.to_string(),
             })
         };
-        if !valid {
+        if !is_valid_name(base) {
             return Err(ShmError::Name {
                 name: base.to_string(),
             });
@@ -133,7 +136,11 @@ impl Names {
     }
 }
 
-pub fn fragment_service(node: &ShmNode, names: &Names, side: Side) -> Result<BytesService, ShmError> {
+pub fn fragment_service(
+    node: &ShmNode,
+    names: &Names,
+    side: Side,
+) -> Result<BytesService, ShmError> {
     let builder = node
         .service_builder(&names.fragments)
         .publish_subscribe::<[u8]>()
@@ -154,7 +161,11 @@ pub fn fragment_service(node: &ShmNode, names: &Names, side: Side) -> Result<Byt
     }
 }
 
-pub fn weights_service(node: &ShmNode, names: &Names, side: Side) -> Result<BytesService, ShmError> {
+pub fn weights_service(
+    node: &ShmNode,
+    names: &Names,
+    side: Side,
+) -> Result<BytesService, ShmError> {
     let builder = node
         .service_builder(&names.weights)
         .publish_subscribe::<[u8]>()
@@ -271,7 +282,9 @@ pub fn weights_publisher(
         .allocation_strategy(AllocationStrategy::PowerOfTwo)
         .max_loaned_samples(1)
         .create()
-        .map_err(failed("creating the weights publisher (is another learner serving this shared-memory name?)"))
+        .map_err(failed(
+            "creating the weights publisher (is another learner serving this shared-memory name?)",
+        ))
 }
 
 /// An actor's end of the weights service; it receives the newest weights at once.

@@ -133,7 +133,10 @@ impl Counts {
 /// Bytes the shared-memory form of `fragment` takes: the size of the sample to loan.
 pub fn encoded_len(fragment: &RolloutFragment) -> Result<usize, LayoutError> {
     fragment.check_shape(None)?;
-    for (field, name) in [("actor_id", &fragment.actor_id), ("scenario", &fragment.scenario)] {
+    for (field, name) in [
+        ("actor_id", &fragment.actor_id),
+        ("scenario", &fragment.scenario),
+    ] {
         if name.len() > MAX_NAME_BYTES {
             return Err(FragmentError::Shape(format!(
                 "{field} has {} bytes (at most {MAX_NAME_BYTES})",
@@ -145,6 +148,27 @@ pub fn encoded_len(fragment: &RolloutFragment) -> Result<usize, LayoutError> {
     Counts::of(fragment)
         .total_bytes()
         .ok_or_else(|| FragmentError::Shape("the fragment is too large to address".into()).into())
+}
+
+/// Bytes of a fragment of these dimensions in which every slot lists every other slot as a
+/// neighbour at every step and finishes one episode, with 64-byte names: what a publisher
+/// reserves per sample (a larger fragment makes it grow; 0 if the sizes are absurd).
+pub fn capacity_hint(steps: usize, agents: usize, obs_dim: usize, action_dim: usize) -> usize {
+    let cells = steps.saturating_mul(agents);
+    Counts {
+        steps,
+        agents,
+        obs_dim,
+        action_dim,
+        features: lcf::FEATURES,
+        neighbour_ids: cells.saturating_mul(agents.saturating_sub(1)),
+        episodes: agents,
+        human_episodes: 0,
+        actor_id_bytes: 64,
+        scenario_bytes: 64,
+    }
+    .total_bytes()
+    .unwrap_or(0)
 }
 
 /// Writes `fragment` into `out`, which must be exactly [`encoded_len`] bytes (a loaned sample);
@@ -313,7 +337,12 @@ pub fn decode(
     r.take(12)?;
     // The dimensions' bounds first, so no size computed below can be absurd.
     RolloutFragment::check_dims(
-        (counts.steps, counts.agents, counts.obs_dim, counts.action_dim),
+        (
+            counts.steps,
+            counts.agents,
+            counts.obs_dim,
+            counts.action_dim,
+        ),
         expected_dims,
     )?;
     if counts.features != lcf::FEATURES {
@@ -386,7 +415,10 @@ struct Reader<'a> {
 
 impl<'a> Reader<'a> {
     fn take(&mut self, n: usize) -> Result<&'a [u8], LayoutError> {
-        let end = self.at.checked_add(n).filter(|&end| end <= self.bytes.len());
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&end| end <= self.bytes.len());
         let Some(end) = end else {
             return Err(LayoutError::Malformed(format!(
                 "truncated: {n} bytes wanted at offset {}, the buffer holds {}",
@@ -529,10 +561,10 @@ mod tests {
         // Huge dimensions fail the bounds, huge counts the length check: no allocation is
         // attempted for either (a 4 G-element Vec would abort the test).
         for (offset, value, reason) in [
-            (40, u32::MAX, "shape"), // steps
-            (44, 0, "shape"),        // agents
-            (48, u32::MAX, "shape"), // obs_dim
-            (56, 6, "shape"),        // LCF features per cell
+            (40, u32::MAX, "shape"),  // steps
+            (44, 0, "shape"),         // agents
+            (48, u32::MAX, "shape"),  // obs_dim
+            (56, 6, "shape"),         // LCF features per cell
             (60, u32::MAX, "decode"), // neighbour ids
             (64, u32::MAX, "decode"), // episodes
             (72, u32::MAX, "decode"), // actor id bytes

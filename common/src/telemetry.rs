@@ -52,6 +52,7 @@ pub mod names {
     pub const LEARNER_GRAD_NORM: &str = "junction_learner_grad_norm";
     pub const LEARNER_CURRICULUM_STAGE: &str = "junction_learner_curriculum_stage";
     pub const LEARNER_CURRICULUM_AGENTS: &str = "junction_learner_curriculum_agents";
+    pub const LEARNER_LOCAL_ACTOR_RESTARTS: &str = "junction_learner_local_actor_restarts_total";
 
     pub const ACTOR_ENV_STEPS: &str = "junction_actor_env_steps_total";
     pub const ACTOR_AGENT_STEPS: &str = "junction_actor_agent_steps_total";
@@ -61,6 +62,7 @@ pub mod names {
     pub const ACTOR_INFERENCE_SECONDS: &str = "junction_actor_inference_seconds_total";
     pub const ACTOR_SIMULATION_SECONDS: &str = "junction_actor_simulation_seconds_total";
     pub const ACTOR_SCENE_AGENTS: &str = "junction_actor_scene_agents";
+    pub const ACTOR_TRANSPORT_SECONDS: &str = "junction_actor_transport_seconds_total";
 }
 
 /// `--log-format` of both binaries (parsed by clap through `FromStr`).

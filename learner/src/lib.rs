@@ -4,8 +4,11 @@
 pub mod algo;
 pub mod bench;
 pub mod checkpoint;
+pub mod ingest;
+pub mod local;
 pub mod metrics;
 pub mod optim;
 pub mod server;
+pub mod shm;
 pub mod stats;
 pub mod trainer;

@@ -18,8 +18,11 @@ use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 use junction_learner::algo;
 use junction_learner::checkpoint::Checkpointer;
+use junction_learner::ingest::Ingest;
+use junction_learner::local::{ActorCommand, LocalActors};
 use junction_learner::metrics::LearnerMetrics;
 use junction_learner::server::{LearnerService, Shared};
+use junction_learner::shm::ShmServer;
 use junction_learner::trainer::{Progress, Trainer, weights_message};
 
 #[derive(Parser)]
@@ -38,7 +41,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Serve actors: take rollouts over gRPC, train, broadcast weights, expose /metrics.
+    /// Serve actors: take rollouts over gRPC and shared memory, train, broadcast weights,
+    /// expose /metrics; with --local-actors, start and supervise the actors too.
     Serve(ServeArgs),
     /// Print the effective configuration as TOML (or, with --defaults, the annotated defaults).
     Config(ConfigArgs),
@@ -126,6 +130,19 @@ struct ServeArgs {
     /// Training budget in seconds, 0 = until stopped [config: run.max_seconds, default 300].
     #[arg(long, value_name = "SECONDS")]
     max_seconds: Option<f64>,
+    /// Base name of the shared-memory services, "" for none [config: server.shm_name,
+    /// default junction]; actors on this host join with `actor --learner shm://NAME`.
+    #[arg(long, value_name = "NAME")]
+    shm_name: Option<String>,
+    /// Start N actor processes (the `actor` binary next to this one) connected over shared
+    /// memory, restart any that dies (with back-off), and stop them when the learner exits:
+    /// the one-command local mode.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    local_actors: usize,
+    /// Scenes each local actor simulates (`actor --scenes`).
+    #[arg(long, value_name = "S", default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..=256))]
+    local_actor_scenes: u32,
 }
 
 #[derive(Args)]
@@ -249,11 +266,20 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             "run.max_seconds",
             args.max_seconds.map(|s| format!("{s:?}")),
         ),
+        (
+            "server.shm_name",
+            args.shm_name.as_ref().map(|n| format!("{n:?}")),
+        ),
     ]
     .into_iter()
     .filter_map(|(key, value)| value.map(|v| format!("{key}={v}")))
     .collect();
     let config = args.source.load(fallback, &flags)?;
+    if args.local_actors > 0 && config.server.shm_name.is_empty() {
+        bail!(
+            "--local-actors connects the actors over shared memory: server.shm_name must not be empty"
+        );
+    }
 
     std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
     write_atomically(&saved_config, config.to_toml().as_bytes())?;
@@ -306,29 +332,48 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     metrics.record_stage(stage);
     let registry = metrics.registry.clone();
     let initial = weights_message(algorithm.as_ref(), progress.version, stage.agents, false)?;
+    let restarts = metrics.local_actor_restarts.clone();
     let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
     let (queue_tx, queue_rx) = mpsc::channel(config.learner.ingest_queue_fragments);
+    let ingest = Ingest::new(Arc::clone(&shared), queue_tx);
 
     let grpc_listener = bind(&config.server.addr, "gRPC").await?;
     let metrics_listener = bind(&config.server.metrics_addr, "metrics").await?;
     let grpc_addr = grpc_listener.local_addr()?;
     let metrics_addr = metrics_listener.local_addr()?;
-    write_endpoints(&run_dir, grpc_addr, metrics_addr)?;
+    let shm_name = &config.server.shm_name;
+    let shm = if shm_name.is_empty() {
+        None
+    } else {
+        Some(ShmServer::start(
+            ingest.clone(),
+            shm_name,
+            config.server.shm_max_actors,
+        )?)
+    };
+    write_endpoints(&run_dir, grpc_addr, metrics_addr, shm_name)?;
     tracing::info!(
         grpc = %grpc_addr,
         metrics = %metrics_addr,
+        shm = %shm_name,
         run_dir = %run_dir.display(),
         device = ?device,
         scenario = %config.scenario.name,
         "learner serving"
     );
+    let local_actors = if args.local_actors > 0 {
+        let command = ActorCommand::beside_this_executable(shm_name, args.local_actor_scenes)?;
+        Some(LocalActors::start(args.local_actors, command, restarts)?)
+    } else {
+        None
+    };
 
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
     let wait_for_shutdown = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|stop| *stop).await;
     };
     let max_bytes = config.server.max_message_bytes;
-    let service = LearnerServer::new(LearnerService::new(Arc::clone(&shared), queue_tx))
+    let service = LearnerServer::new(LearnerService::new(ingest))
         .max_decoding_message_size(max_bytes)
         .max_encoding_message_size(max_bytes);
     let grpc = tokio::spawn(
@@ -362,8 +407,24 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .await
         .context("training thread panicked")?;
 
-    // Actors have been told the run is over; give their streams a moment to close, then stop.
+    // Actors have been told the run is over (or, after an error, will be stopped): local ones
+    // get a moment to exit by themselves, remote streams a moment to close, then all stops.
+    if let Some(local) = local_actors {
+        let grace = if outcome.is_ok() {
+            LOCAL_ACTOR_GRACE
+        } else {
+            Duration::ZERO
+        };
+        tokio::task::spawn_blocking(move || local.finish(grace))
+            .await
+            .context("stopping the local actors")?;
+    }
     tokio::time::sleep(Duration::from_millis(500)).await;
+    if let Some(shm) = shm {
+        tokio::task::spawn_blocking(move || shm.stop())
+            .await
+            .context("stopping the shared-memory server")?;
+    }
     let _ = shutdown_tx.send(true);
     if tokio::time::timeout(Duration::from_secs(10), grpc)
         .await
@@ -410,8 +471,21 @@ async fn stop_on_signal(stop: Arc<AtomicBool>) {
     }
 }
 
-fn write_endpoints(run_dir: &Path, grpc: SocketAddr, metrics: SocketAddr) -> anyhow::Result<()> {
-    let body = serde_json::json!({ "grpc": grpc.to_string(), "metrics": metrics.to_string(), "pid": std::process::id() });
+/// How long local actors get to exit by themselves once they have been told the run is over.
+const LOCAL_ACTOR_GRACE: Duration = Duration::from_secs(10);
+
+fn write_endpoints(
+    run_dir: &Path,
+    grpc: SocketAddr,
+    metrics: SocketAddr,
+    shm: &str,
+) -> anyhow::Result<()> {
+    let body = serde_json::json!({
+        "grpc": grpc.to_string(),
+        "metrics": metrics.to_string(),
+        "shm": shm,
+        "pid": std::process::id(),
+    });
     write_atomically(&run_dir.join("endpoints.json"), body.to_string().as_bytes())
 }
 

@@ -18,6 +18,7 @@ pub const REJECT_SCENARIO: &str = "scenario";
 /// `reason` of accepted fragments not trained on: older than `max_policy_lag` versions.
 pub const DROP_STALE: &str = "stale";
 pub const TRANSPORT_GRPC: &str = "grpc";
+pub const TRANSPORT_SHM: &str = "shm";
 
 pub struct LearnerMetrics {
     pub registry: Registry,
@@ -61,6 +62,7 @@ pub struct LearnerMetrics {
     grad_norm: Gauge,
     curriculum_stage: IntGauge,
     curriculum_agents: IntGauge,
+    pub local_actor_restarts: IntCounter,
 }
 
 impl LearnerMetrics {
@@ -259,6 +261,10 @@ impl LearnerMetrics {
                 names::LEARNER_CURRICULUM_AGENTS,
                 "Learning agents per scene that actors are told to simulate.",
             )?,
+            local_actor_restarts: counter(
+                names::LEARNER_LOCAL_ACTOR_RESTARTS,
+                "Local actors (serve --local-actors) restarted after they exited.",
+            )?,
             registry,
         })
     }
@@ -273,7 +279,9 @@ impl LearnerMetrics {
             self.fragments_rejected.with_label_values(&[reason]);
         }
         self.fragments_dropped.with_label_values(&[DROP_STALE]);
-        self.transport_bytes.with_label_values(&[TRANSPORT_GRPC]);
+        for transport in [TRANSPORT_GRPC, TRANSPORT_SHM] {
+            self.transport_bytes.with_label_values(&[transport]);
+        }
         for outcome in Outcome::ALL {
             self.episodes
                 .with_label_values(&[scenario, outcome.label()]);

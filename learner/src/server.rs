@@ -1,5 +1,5 @@
-//! The gRPC face of the learner: actor registration, rollout ingest (validate → bounded
-//! queue), weight broadcast and status.
+//! The state the transports share with the training loop, and the gRPC face of the learner:
+//! actor registration, rollout ingest (through [`crate::ingest`]), weight broadcast and status.
 
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -11,11 +11,12 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 use junction_common::config::RunConfig;
-use junction_common::fragment::{FragmentError, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_server::Learner};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
-use crate::metrics::{LearnerMetrics, REJECT_DECODE, REJECT_SCENARIO, TRANSPORT_GRPC};
+use crate::ingest::{Ingest, Rejection};
+use crate::metrics::{LearnerMetrics, REJECT_DECODE, TRANSPORT_GRPC};
 
 /// State the gRPC handlers share with the training loop.
 pub struct Shared {
@@ -46,12 +47,36 @@ impl Shared {
         }
     }
 
-    fn obs_dim(&self) -> usize {
-        self.config.scenario.obs_dim()
+    /// Registers an actor whatever its transport: assigns its id (unique across transports)
+    /// and answers with the run configuration. Refuses another protocol version.
+    pub fn register(
+        &self,
+        hello: &proto::RegisterRequest,
+        transport: &str,
+    ) -> Result<proto::RegisterReply, String> {
+        if hello.protocol_version != PROTOCOL_VERSION {
+            return Err(format!(
+                "protocol version {} is not supported (this learner speaks {PROTOCOL_VERSION})",
+                hello.protocol_version
+            ));
+        }
+        let actor_id = format!("actor-{}", self.next_actor.fetch_add(1, Ordering::Relaxed));
+        tracing::info!(actor = %actor_id, name = %hello.actor_name, scenes = hello.scenes, transport, "actor registered");
+        let config = &self.config;
+        Ok(proto::RegisterReply {
+            protocol_version: PROTOCOL_VERSION,
+            actor_id,
+            scenario_toml: config.scenario.to_toml(),
+            fragment_length: config.rollout.fragment_length as u32,
+            obs_dim: config.scenario.obs_dim() as u32,
+            action_dim: ACTION_DIM as u32,
+            obs_layout_version: OBS_LAYOUT_VERSION,
+            run_seed: config.run.seed,
+        })
     }
 
     /// Counts a refused fragment and logs its cause once at warn level.
-    fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
+    pub(crate) fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
         self.metrics
             .fragments_rejected
             .with_label_values(&[reason])
@@ -75,12 +100,15 @@ impl Shared {
 
 pub struct LearnerService {
     shared: Arc<Shared>,
-    queue: mpsc::Sender<RolloutFragment>,
+    ingest: Ingest,
 }
 
 impl LearnerService {
-    pub fn new(shared: Arc<Shared>, queue: mpsc::Sender<RolloutFragment>) -> Self {
-        LearnerService { shared, queue }
+    pub fn new(ingest: Ingest) -> Self {
+        LearnerService {
+            shared: Arc::clone(ingest.shared()),
+            ingest,
+        }
     }
 }
 
@@ -117,23 +145,10 @@ impl Learner for LearnerService {
         request: Request<proto::RegisterRequest>,
     ) -> Result<Response<proto::RegisterReply>, Status> {
         let hello = request.into_inner();
-        check_version(hello.protocol_version)?;
-        let actor_id = format!(
-            "actor-{}",
-            self.shared.next_actor.fetch_add(1, Ordering::Relaxed)
-        );
-        tracing::info!(actor = %actor_id, name = %hello.actor_name, scenes = hello.scenes, "actor registered");
-        let config = &self.shared.config;
-        Ok(Response::new(proto::RegisterReply {
-            protocol_version: PROTOCOL_VERSION,
-            actor_id,
-            scenario_toml: config.scenario.to_toml(),
-            fragment_length: config.rollout.fragment_length as u32,
-            obs_dim: self.shared.obs_dim() as u32,
-            action_dim: ACTION_DIM as u32,
-            obs_layout_version: OBS_LAYOUT_VERSION,
-            run_seed: config.run.seed,
-        }))
+        self.shared
+            .register(&hello, TRANSPORT_GRPC)
+            .map(Response::new)
+            .map_err(Status::failed_precondition)
     }
 
     async fn push_rollouts(
@@ -144,7 +159,7 @@ impl Learner for LearnerService {
         let _connected = ConnectedGuard::new(&shared.metrics.connected_actors);
         let mut stream = request.into_inner();
         let mut summary = proto::PushSummary::default();
-        let dims = Some((shared.obs_dim(), ACTION_DIM));
+        let dims = Some(self.ingest.dims());
         loop {
             let message = match stream.message().await {
                 Ok(Some(message)) => message,
@@ -161,40 +176,26 @@ impl Learner for LearnerService {
                     return Err(status);
                 }
             };
-            shared
-                .metrics
-                .transport_bytes
-                .with_label_values(&[TRANSPORT_GRPC])
-                .inc_by(message.encoded_len() as u64);
+            let bytes = message.encoded_len();
             let actor = message.actor_id.clone();
-            let fragment = match RolloutFragment::from_proto(message, dims) {
-                Ok(f) if f.scenario != shared.config.scenario.name => {
-                    let detail = format!(
-                        "fragment is from scenario {:?}, this run trains {:?}",
-                        f.scenario, shared.config.scenario.name
-                    );
-                    shared.reject(REJECT_SCENARIO, &actor, &detail);
-                    return Err(Status::invalid_argument(format!(
-                        "fragment rejected: {detail}"
-                    )));
-                }
-                Ok(f) => f,
-                Err(e) => {
-                    shared.reject(e.reason(), &actor, &e.to_string());
-                    return Err(match e {
-                        FragmentError::Version { .. } => {
-                            Status::failed_precondition(format!("fragment rejected: {e}"))
-                        }
-                        _ => Status::invalid_argument(format!("fragment rejected: {e}")),
-                    });
-                }
-            };
+            let decoded = RolloutFragment::from_proto(message, dims).map_err(Rejection::from);
+            let fragment = self
+                .ingest
+                .admit(TRANSPORT_GRPC, bytes, &actor, decoded)
+                .map_err(|rejection| {
+                    let message = format!("fragment rejected: {}", rejection.detail);
+                    if rejection.reason == "version" {
+                        Status::failed_precondition(message)
+                    } else {
+                        Status::invalid_argument(message)
+                    }
+                })?;
             let agent_steps = fragment.agent_steps() as u64;
-            shared.metrics.fragments.inc();
             // A full queue parks this stream here, so the actor's sends stall (backpressure).
-            self.queue.send(fragment).await.map_err(|_| {
-                Status::unavailable("the learner has finished training and is shutting down")
-            })?;
+            self.ingest
+                .enqueue(fragment)
+                .await
+                .map_err(|closed| Status::unavailable(closed.to_string()))?;
             summary.accepted_fragments += 1;
             summary.accepted_agent_steps += agent_steps;
         }
