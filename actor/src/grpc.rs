@@ -12,6 +12,7 @@ use tonic::transport::{Channel, Endpoint};
 
 use junction_common::fragment::PROTOCOL_VERSION;
 use junction_common::proto::{self, learner_client::LearnerClient};
+use junction_common::{GRPC_CONNECTION_WINDOW_BYTES, GRPC_STREAM_WINDOW_BYTES};
 
 use crate::metrics::ActorMetrics;
 use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
@@ -23,6 +24,8 @@ async fn connect(url: &str, timeout: Duration) -> anyhow::Result<Channel> {
             format!("--learner {url:?} is not a valid URL (expected e.g. http://127.0.0.1:50051)")
         })?
         .connect_timeout(Duration::from_secs(5))
+        .initial_stream_window_size(GRPC_STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(GRPC_CONNECTION_WINDOW_BYTES)
         .tcp_nodelay(true);
     let started = Instant::now();
     let mut delay = Duration::from_millis(100);

@@ -12,3 +12,4 @@ pub mod server;
 pub mod shm;
 pub mod stats;
 pub mod trainer;
+pub mod transport_bench;

@@ -16,6 +16,9 @@ use junction_common::proto::learner_server::LearnerServer;
 use junction_common::scenarios;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
+use junction_common::{
+    GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
+};
 use junction_learner::algo;
 use junction_learner::checkpoint::Checkpointer;
 use junction_learner::ingest::Ingest;
@@ -24,6 +27,7 @@ use junction_learner::metrics::LearnerMetrics;
 use junction_learner::server::{LearnerService, Shared};
 use junction_learner::shm::ShmServer;
 use junction_learner::trainer::{Progress, Trainer, weights_message};
+use junction_learner::transport_bench;
 
 #[derive(Parser)]
 #[command(
@@ -50,6 +54,22 @@ enum Command {
     /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update) and print one
     /// JSON line with samples_per_s.
     Bench(BenchArgs),
+    /// Time fragment throughput of each transport on this host through the learner's real
+    /// receiving side (decode, validation, ingest queue), with fragments of the run's shape
+    /// (30 agents × 200 steps × 91 observations by default); one JSON line per transport.
+    BenchTransport(BenchTransportArgs),
+}
+
+#[derive(Args)]
+struct BenchTransportArgs {
+    #[command(flatten)]
+    source: ConfigSource,
+    /// Which transport to time: shm, grpc or both.
+    #[arg(long, default_value = "both", value_parser = ["shm", "grpc", "both"])]
+    transport: String,
+    /// Fragments sent through each transport.
+    #[arg(long, default_value_t = 300)]
+    fragments: usize,
 }
 
 #[derive(Args)]
@@ -168,6 +188,7 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Bench(args) => bench(args),
+        Command::BenchTransport(args) => bench_transport(args),
         Command::Serve(args) => {
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)
@@ -202,6 +223,20 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     )
     .context("timing the update")?;
     println!("{}", serde_json::to_string(&report)?);
+    Ok(())
+}
+
+fn bench_transport(args: BenchTransportArgs) -> anyhow::Result<()> {
+    let config = args.source.load(None, &[])?;
+    let count = args.fragments.max(1);
+    if args.transport != "grpc" {
+        let report = transport_bench::shm(&config, count).context("timing shared memory")?;
+        println!("{}", serde_json::to_string(&report)?);
+    }
+    if args.transport != "shm" {
+        let report = transport_bench::grpc(&config, count).context("timing gRPC")?;
+        println!("{}", serde_json::to_string(&report)?);
+    }
     Ok(())
 }
 
@@ -378,6 +413,9 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .max_encoding_message_size(max_bytes);
     let grpc = tokio::spawn(
         tonic::transport::Server::builder()
+            .initial_stream_window_size(GRPC_STREAM_WINDOW_BYTES)
+            .initial_connection_window_size(GRPC_CONNECTION_WINDOW_BYTES)
+            .max_frame_size(GRPC_MAX_FRAME_BYTES)
             .add_service(service)
             .serve_with_incoming_shutdown(
                 TcpListenerStream::new(grpc_listener),
