@@ -2,13 +2,15 @@
 //! `junction_common::shm`). Two threads own the iceoryx2 ports, since ports stay on the
 //! thread that made them:
 //!
-//! - `shm-policy` registers, then follows the weights (newest wins) and watches the learner:
-//!   when its services vanish (it exited or was killed) the actor stops with an error;
-//! - `shm-send` writes each fragment from the rollout thread straight into a loaned sample
-//!   and sends it, waiting while the learner's buffer is full (backpressure).
+//! - `shm-send` creates the fragment publisher, then registers (so the learner has attached
+//!   to the publisher before the first fragment), then writes each fragment from the rollout
+//!   thread straight into a loaned sample and sends it, waiting while the learner's buffer is
+//!   full (backpressure);
+//! - `shm-policy` follows the weights (newest wins) and watches the learner: when its
+//!   services vanish (it exited or was killed) the actor stops with an error.
 //!
-//! Either sets the shared `abort` flag to end the other: a send blocked on a full learner
-//! gives up once the learner is gone or the run is over.
+//! Whichever thread ends sets the shared `abort` flag, which ends the other: a send blocked
+//! on a full learner gives up once the learner is gone or the run is over.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -23,23 +25,16 @@ use tokio::sync::{oneshot, watch};
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
-use junction_common::shm_layout;
-use junction_common::spec::ACTION_DIM;
 
 use crate::metrics::{ActorMetrics, thread_cpu_seconds};
 use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
 
-/// How long the learner has to answer a registration, and then to deliver the first weights.
+/// How long the learner has to answer a registration, and to deliver the first weights.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(30);
-/// How often the policy thread looks for new weights and whether the learner is still there.
+/// How often the policy thread looks for new weights.
 const POLL: Duration = Duration::from_millis(10);
+/// How often the policy thread checks that the learner is still there.
 const LIVENESS_CHECK: Duration = Duration::from_millis(500);
-
-/// What the policy thread hands over once registered.
-struct Registered {
-    reply: proto::RegisterReply,
-    weights: watch::Receiver<Arc<proto::PolicyWeights>>,
-}
 
 /// Runs until the learner says the run is finished (Ok) or goes away (Err).
 pub async fn run(
@@ -50,11 +45,12 @@ pub async fn run(
     let names = Arc::new(Names::new(name)?);
     let mut threads = Threads::default();
     let finished = Arc::new(AtomicBool::new(false));
-    let (registered_tx, registered_rx) = oneshot::channel();
+    let (reply_tx, reply_rx) = oneshot::channel();
+    let (weights_tx, weights_rx) = oneshot::channel();
+    let (outbox_tx, outbox_rx) = sync_channel::<RolloutFragment>(OUTBOX_FRAGMENTS);
     {
         let names = Arc::clone(&names);
         let abort = Arc::clone(&threads.abort);
-        let finished = Arc::clone(&finished);
         let metrics = Arc::clone(&metrics);
         let hello = proto::RegisterRequest {
             protocol_version: PROTOCOL_VERSION,
@@ -62,40 +58,34 @@ pub async fn run(
             scenes: options.scenes as u32,
         };
         let timeout = options.connect_timeout;
-        threads.spawn("shm-policy", move || {
-            follow_policy(
-                &names,
-                &hello,
-                timeout,
-                registered_tx,
-                &abort,
-                &finished,
-                &metrics,
+        threads.spawn("shm-send", move || {
+            send_fragments(
+                &names, &hello, timeout, reply_tx, &outbox_rx, &abort, &metrics,
             )
         })?;
     }
-    let registered = registered_rx
-        .await
-        .context("the shared-memory policy thread ended during registration")??;
-    let run = RunInfo::from_reply(&registered.reply)?;
-    run.record_in_span();
-    tracing::info!(scenes = options.scenes, shm = name, "registered");
-
-    let (outbox_tx, outbox_rx) = sync_channel::<RolloutFragment>(OUTBOX_FRAGMENTS);
     {
         let names = Arc::clone(&names);
         let abort = Arc::clone(&threads.abort);
+        let finished = Arc::clone(&finished);
         let metrics = Arc::clone(&metrics);
-        let capacity = shm_layout::capacity_hint(
-            run.fragment_length,
-            run.scenario.agent_count(),
-            run.scenario.obs_dim(),
-            ACTION_DIM,
-        );
-        threads.spawn("shm-send", move || {
-            send_fragments(&names, capacity, &outbox_rx, &abort, &metrics)
+        let timeout = options.connect_timeout;
+        threads.spawn("shm-policy", move || {
+            follow_policy(&names, timeout, weights_tx, &abort, &finished, &metrics)
         })?;
     }
+    let reply = match reply_rx.await {
+        Ok(reply) => reply?,
+        Err(_) => return threads.stop_in_background().await,
+    };
+    let run = RunInfo::from_reply(&reply)?;
+    run.record_in_span();
+    tracing::info!(scenes = options.scenes, shm = name, "registered");
+    let weights = match weights_rx.await {
+        Ok(weights) => weights?,
+        Err(_) => return threads.stop_in_background().await,
+    };
+
     let seed = run.seed(options.seed);
     let rollout = {
         let finished = Arc::clone(&finished);
@@ -104,21 +94,11 @@ pub async fn run(
         tokio::task::spawn_blocking(move || {
             // Err: the sender thread is gone (learner gone or run over); the threads say why.
             let send = |fragment| outbox_tx.send(fragment).is_ok();
-            rollout_loop(
-                run,
-                scenes,
-                seed,
-                registered.weights,
-                send,
-                &finished,
-                &metrics,
-            )
+            rollout_loop(run, scenes, seed, weights, send, &finished, &metrics)
         })
     };
     let rollout_result = rollout.await.context("rollout thread panicked")?;
-    let transport_result = tokio::task::spawn_blocking(move || threads.stop())
-        .await
-        .context("stopping the shared-memory threads")?;
+    let transport_result = threads.stop_in_background().await;
     rollout_result?;
     transport_result?;
     if finished.load(Ordering::Relaxed) {
@@ -155,6 +135,13 @@ impl Threads {
         Ok(())
     }
 
+    /// Stops the threads without blocking the async runtime; the first error of any thread.
+    async fn stop_in_background(self) -> anyhow::Result<()> {
+        tokio::task::spawn_blocking(move || self.stop())
+            .await
+            .context("stopping the shared-memory threads")?
+    }
+
     /// The first error of any thread.
     fn stop(mut self) -> anyhow::Result<()> {
         self.abort.store(true, Ordering::Relaxed);
@@ -180,52 +167,129 @@ impl Drop for Threads {
     }
 }
 
-/// Registers, hands the reply and the first weights to `registered`, then follows the
-/// weights until the run is finished, the learner is gone or `abort` is set.
-fn follow_policy(
+/// Opens what `open` opens once the learner serves it, retrying with back-off until
+/// `timeout` has passed. `open` returns `Ok(None)` for services that exist but that no
+/// learner serves (left behind by one that died).
+fn open_when_served<T>(
+    what: &str,
+    timeout: Duration,
+    abort: &AtomicBool,
+    mut open: impl FnMut() -> Result<Option<T>, shm::ShmError>,
+) -> anyhow::Result<T> {
+    let started = Instant::now();
+    let mut delay = Duration::from_millis(100);
+    loop {
+        let problem = match open() {
+            Ok(Some(opened)) => return Ok(opened),
+            Ok(None) => "its services exist, but no learner serves them".to_string(),
+            Err(e) => e.to_string(),
+        };
+        if started.elapsed() >= timeout || abort.load(Ordering::Relaxed) {
+            bail!(
+                "no learner serves {what} (waited {:.0} s): {problem}",
+                timeout.as_secs_f64()
+            );
+        }
+        tracing::debug!(
+            retry_in_ms = delay.as_millis() as u64,
+            "{what}: not served yet"
+        );
+        std::thread::sleep(delay);
+        delay = (delay * 2).min(Duration::from_secs(2));
+    }
+}
+
+/// Creates the fragment publisher, registers (reply to `registered`), then sends every
+/// fragment of `outbox` until it closes or `abort` is set. Counts the CPU time of encoding
+/// and sending as transport time.
+fn send_fragments(
     names: &Names,
     hello: &proto::RegisterRequest,
     connect_timeout: Duration,
-    registered: oneshot::Sender<anyhow::Result<Registered>>,
-    abort: &AtomicBool,
-    finished: &AtomicBool,
+    registered: oneshot::Sender<anyhow::Result<proto::RegisterReply>>,
+    outbox: &Receiver<RolloutFragment>,
+    abort: &Arc<AtomicBool>,
     metrics: &ActorMetrics,
 ) -> anyhow::Result<()> {
-    let node = match shm::node("junction-actor") {
-        Ok(node) => node,
-        Err(e) => {
-            let _ = registered.send(Err(e.into()));
-            return Ok(());
-        }
-    };
-    let connected = (|| -> anyhow::Result<_> {
-        let (register, weights_service) = open_services(&node, names, connect_timeout, abort)?;
-        let subscriber = shm::weights_subscriber(&weights_service)?;
+    let setup = || -> anyhow::Result<_> {
+        let node = shm::node("junction-actor")?;
+        let (fragments, register) =
+            open_when_served(&names.fragments.to_string(), connect_timeout, abort, || {
+                let fragments = shm::fragment_service(&node, names, Side::Actor)?;
+                let register = shm::register_service(&node, names, Side::Actor)?;
+                Ok(shm::learner_subscribed(&fragments).then_some((fragments, register)))
+            })?;
+        let publisher =
+            shm::fragment_publisher(&fragments, shm::FRAGMENT_SAMPLE_BYTES, Arc::clone(abort))?;
         let client = shm::register_client(&register)?;
-        let reply = request_registration(&client, hello, abort)?;
-        let first = next_weights(&subscriber, metrics, Some(ANSWER_TIMEOUT), abort)?
-            .context("the learner sent no weights after the registration")?;
-        Ok((register, weights_service, subscriber, reply, first))
-    })();
-    let (_register, weights_service, subscriber, reply, first) = match connected {
-        Ok(ports) => ports,
+        let reply = shm::register(&client, hello, ANSWER_TIMEOUT, abort)?;
+        Ok((node, fragments, publisher, reply))
+    };
+    let (_node, _fragments, publisher) = match setup() {
+        Ok((node, fragments, publisher, reply)) => {
+            if registered.send(Ok(reply)).is_err() {
+                return Ok(());
+            }
+            (node, fragments, publisher)
+        }
         Err(e) => {
             let _ = registered.send(Err(e));
             return Ok(());
         }
     };
-    let finished_at_once = first.run_finished;
-    let (weights_tx, weights_rx) = watch::channel(Arc::new(first));
-    if registered
-        .send(Ok(Registered {
-            reply,
-            weights: weights_rx,
-        }))
-        .is_err()
-    {
+    while !abort.load(Ordering::Relaxed) {
+        let fragment = match outbox.recv_timeout(Duration::from_millis(100)) {
+            Ok(fragment) => fragment,
+            Err(RecvTimeoutError::Timeout) => continue,
+            Err(RecvTimeoutError::Disconnected) => break,
+        };
+        let cpu = thread_cpu_seconds();
+        let sent = shm::send_fragment(&publisher, &fragment);
+        metrics.transport_seconds.inc_by(thread_cpu_seconds() - cpu);
+        match sent {
+            Ok(_) => {}
+            // Given up on purpose: the learner is gone or the run is over.
+            Err(_) if abort.load(Ordering::Relaxed) => break,
+            Err(e) => return Err(e).context("sending a fragment over shared memory"),
+        }
+    }
+    Ok(())
+}
+
+/// Hands the current weights to `first`, then follows them until the run is finished, the
+/// learner is gone or `abort` is set.
+fn follow_policy(
+    names: &Names,
+    connect_timeout: Duration,
+    first: oneshot::Sender<anyhow::Result<watch::Receiver<Arc<proto::PolicyWeights>>>>,
+    abort: &AtomicBool,
+    finished: &AtomicBool,
+    metrics: &ActorMetrics,
+) -> anyhow::Result<()> {
+    let setup = || -> anyhow::Result<_> {
+        let node = shm::node("junction-actor")?;
+        let service = open_when_served(&names.weights.to_string(), connect_timeout, abort, || {
+            let service = shm::weights_service(&node, names, Side::Actor)?;
+            Ok(shm::learner_present(&service).then_some(service))
+        })?;
+        let subscriber = shm::weights_subscriber(&service)?;
+        let current = next_weights(&subscriber, metrics, Some(ANSWER_TIMEOUT), abort)?
+            .context("the learner sent no weights")?;
+        Ok((node, service, subscriber, current))
+    };
+    let (_node, service, subscriber, current) = match setup() {
+        Ok(ports) => ports,
+        Err(e) => {
+            let _ = first.send(Err(e));
+            return Ok(());
+        }
+    };
+    let finished_already = current.run_finished;
+    let (weights_tx, weights_rx) = watch::channel(Arc::new(current));
+    if first.send(Ok(weights_rx)).is_err() {
         return Ok(());
     }
-    if finished_at_once {
+    if finished_already {
         finished.store(true, Ordering::Relaxed);
         return Ok(());
     }
@@ -241,9 +305,9 @@ fn follow_policy(
         }
         if last_check.elapsed() >= LIVENESS_CHECK {
             last_check = Instant::now();
-            if !shm::learner_present(&weights_service) {
+            if !shm::learner_present(&service) {
                 bail!(
-                    "the learner is gone: its shared-memory services vanished without finishing the run"
+                    "the learner is gone: its shared-memory services vanished before the run finished"
                 );
             }
         }
@@ -252,75 +316,8 @@ fn follow_policy(
     Ok(())
 }
 
-/// Opens the registration and weights services, retrying with back-off until the learner
-/// has created them or `timeout` has passed.
-fn open_services(
-    node: &shm::ShmNode,
-    names: &Names,
-    timeout: Duration,
-    abort: &AtomicBool,
-) -> anyhow::Result<(shm::RegisterService, shm::BytesService)> {
-    let started = Instant::now();
-    let mut delay = Duration::from_millis(100);
-    loop {
-        let opened = shm::register_service(node, names, Side::Actor).and_then(|register| {
-            let weights = shm::weights_service(node, names, Side::Actor)?;
-            Ok((register, weights))
-        });
-        let problem = match opened {
-            Ok((register, weights)) if shm::learner_present(&weights) => {
-                return Ok((register, weights));
-            }
-            Ok(_) => "its services exist, but no learner serves them".to_string(),
-            Err(e) => e.to_string(),
-        };
-        if started.elapsed() >= timeout || abort.load(Ordering::Relaxed) {
-            bail!(
-                "no learner serves shared memory as {} (waited {:.0} s): {problem}",
-                names.weights,
-                timeout.as_secs_f64()
-            );
-        }
-        tracing::info!(
-            retry_in_ms = delay.as_millis() as u64,
-            "learner not reachable over shared memory yet"
-        );
-        std::thread::sleep(delay);
-        delay = (delay * 2).min(Duration::from_secs(2));
-    }
-}
-
-fn request_registration(
-    client: &shm::RegisterClient,
-    hello: &proto::RegisterRequest,
-    abort: &AtomicBool,
-) -> anyhow::Result<proto::RegisterReply> {
-    let request = hello.encode_to_vec();
-    let pending = client
-        .loan_slice_uninit(request.len())
-        .map_err(shm::failed("loaning a registration request"))?
-        .write_from_slice(&request)
-        .send()
-        .map_err(shm::failed("sending the registration"))?;
-    let deadline = Instant::now() + ANSWER_TIMEOUT;
-    while Instant::now() < deadline && !abort.load(Ordering::Relaxed) {
-        if let Some(response) = pending
-            .receive()
-            .map_err(shm::failed("receiving the registration reply"))?
-        {
-            return proto::RegisterReply::decode(response.payload())
-                .context("the learner's registration reply is not a RegisterReply");
-        }
-        std::thread::sleep(POLL);
-    }
-    bail!(
-        "the learner did not answer the registration within {} s",
-        ANSWER_TIMEOUT.as_secs()
-    )
-}
-
 /// The newest weights waiting, if any; with `wait`, waits up to that long for them. Counts the
-/// time spent decoding as transport time.
+/// time spent receiving and decoding them as transport time.
 fn next_weights(
     subscriber: &shm::BytesSubscriber,
     metrics: &ActorMetrics,
@@ -357,35 +354,4 @@ fn next_weights(
             _ => return Ok(None),
         }
     }
-}
-
-/// Sends every fragment of `outbox` until it closes or `abort` is set; counts the CPU time
-/// of encoding and sending as transport time.
-fn send_fragments(
-    names: &Names,
-    capacity: usize,
-    outbox: &Receiver<RolloutFragment>,
-    abort: &Arc<AtomicBool>,
-    metrics: &ActorMetrics,
-) -> anyhow::Result<()> {
-    let node = shm::node("junction-actor")?;
-    let service = shm::fragment_service(&node, names, Side::Actor)?;
-    let publisher = shm::fragment_publisher(&service, capacity, Arc::clone(abort))?;
-    while !abort.load(Ordering::Relaxed) {
-        let fragment = match outbox.recv_timeout(Duration::from_millis(100)) {
-            Ok(fragment) => fragment,
-            Err(RecvTimeoutError::Timeout) => continue,
-            Err(RecvTimeoutError::Disconnected) => break,
-        };
-        let cpu = thread_cpu_seconds();
-        let sent = shm::send_fragment(&publisher, &fragment);
-        metrics.transport_seconds.inc_by(thread_cpu_seconds() - cpu);
-        match sent {
-            Ok(_) => {}
-            // Given up on purpose: the learner is gone or the run is over.
-            Err(_) if abort.load(Ordering::Relaxed) => break,
-            Err(e) => return Err(e).context("sending a fragment over shared memory"),
-        }
-    }
-    Ok(())
 }

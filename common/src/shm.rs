@@ -22,6 +22,7 @@ use std::fmt::Debug;
 use std::sync::Arc;
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
 use iceoryx2::port::BackpressureAction;
 use iceoryx2::port::client::Client;
@@ -31,7 +32,10 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{publish_subscribe, request_response};
 
+use prost::Message;
+
 use crate::fragment::RolloutFragment;
+use crate::proto;
 use crate::shm_layout::{self, LayoutError};
 
 pub type Ipc = ipc::Service;
@@ -45,6 +49,9 @@ pub type RegisterClient = Client<Ipc, [u8], (), [u8], ()>;
 
 /// Fragments the learner's subscriber buffers per actor before that actor's sends wait.
 pub const FRAGMENT_BUFFER: usize = 2;
+/// What an actor's publisher reserves per fragment sample before it knows the run (a default
+/// fragment of 30 agents × 200 steps is about 2.7 MB); a larger fragment makes it grow.
+pub const FRAGMENT_SAMPLE_BYTES: usize = 4 << 20;
 /// Registration messages are small; the ports grow if one is larger.
 const REGISTER_BYTES: usize = 4096;
 
@@ -58,8 +65,8 @@ pub enum ShmError {
     Name { name: String },
     #[error(transparent)]
     Layout(#[from] LayoutError),
-    #[error("the learner is gone")]
-    LearnerGone,
+    #[error("registration: {0}")]
+    Registration(String),
 }
 
 /// Wraps an iceoryx2 error with what was being done.
@@ -316,9 +323,51 @@ pub fn register_client(service: &RegisterService) -> Result<RegisterClient, ShmE
         .map_err(failed("creating the registration client"))
 }
 
+/// Whether a learner has subscribed to the fragment service.
+pub fn learner_subscribed(fragments: &BytesService) -> bool {
+    fragments.dynamic_config().number_of_subscribers() > 0
+}
+
 /// Whether a learner is serving `service` (its weights publisher is alive). Removes the
 /// stale resources of dead processes first, so a learner killed with SIGKILL counts as gone.
 pub fn learner_present(weights: &BytesService) -> bool {
     weights.try_cleanup_dead_nodes();
     weights.dynamic_config().number_of_publishers() > 0
+}
+
+/// Registers with the learner and waits up to `timeout` for its answer.
+///
+/// Call it only once this process's fragment publisher exists: the learner attaches its
+/// subscriber to every publisher before it answers, and a sample sent to a subscriber that has
+/// not attached yet may be lost (iceoryx2 drops it when the buffer is full and nobody is
+/// attached to wait for).
+pub fn register(
+    client: &RegisterClient,
+    hello: &proto::RegisterRequest,
+    timeout: Duration,
+    abort: &AtomicBool,
+) -> Result<proto::RegisterReply, ShmError> {
+    let request = hello.encode_to_vec();
+    let pending = client
+        .loan_slice_uninit(request.len())
+        .map_err(failed("loaning a registration request"))?
+        .write_from_slice(&request)
+        .send()
+        .map_err(failed("sending the registration"))?;
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline && !abort.load(Ordering::Relaxed) {
+        if let Some(response) = pending
+            .receive()
+            .map_err(failed("receiving the registration reply"))?
+        {
+            return proto::RegisterReply::decode(response.payload()).map_err(|e| {
+                ShmError::Registration(format!("the reply is not a RegisterReply: {e}"))
+            });
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    Err(ShmError::Registration(format!(
+        "the learner did not answer within {} s",
+        timeout.as_secs()
+    )))
 }

@@ -2,6 +2,10 @@
 //! thread that owns the node and its ports, answers registrations, publishes every new policy
 //! version and feeds received fragments into the same ingest path as gRPC.
 //!
+//! An actor creates its fragment publisher before it registers, and the server attaches to
+//! it before answering, so no fragment can reach an unattached subscriber (iceoryx2 would drop
+//! it once the buffer is full).
+//!
 //! Backpressure: a fragment is taken from the subscriber only when the ingest queue has room
 //! for it. While the queue is full the subscriber's buffer fills, and then each actor's next
 //! send waits in iceoryx2 until the learner takes a sample: actors slow down, nothing is
@@ -147,6 +151,11 @@ fn serve(ports: &Ports, ingest: &Ingest, stop: &AtomicBool) {
             match ports.register.receive() {
                 Ok(Some(request)) => {
                     busy = true;
+                    // Attach to the new actor's publisher before it may send (see
+                    // `shm::register`).
+                    if let Err(e) = ports.subscriber.update_connections() {
+                        warn_once("connecting to a new actor", &e);
+                    }
                     let reply = registration_reply(shared, request.payload());
                     match request.loan_slice_uninit(reply.len()) {
                         Ok(response) => {

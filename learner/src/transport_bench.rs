@@ -188,24 +188,33 @@ pub fn shm(config: &RunConfig, count: usize) -> anyhow::Result<TransportReport> 
     let receiver = receiver(config, count)?;
     let name = format!("bench-{}", std::process::id());
     let server = ShmServer::start(receiver.ingest.clone(), &name, 2)?;
-    let started = Instant::now();
     let sender = {
         let fragment = fragment.clone();
-        std::thread::spawn(move || -> anyhow::Result<()> {
+        std::thread::spawn(move || -> anyhow::Result<Instant> {
+            // As an actor does: publisher first, then register.
             let names = Names::new(&name)?;
             let node = shm::node("junction-bench")?;
             let service = shm::fragment_service(&node, &names, Side::Actor)?;
             let abort = Arc::new(AtomicBool::new(false));
-            let publisher = shm::fragment_publisher(&service, fragment_bytes, abort)?;
+            let publisher = shm::fragment_publisher(&service, fragment_bytes, Arc::clone(&abort))?;
+            let register = shm::register_service(&node, &names, Side::Actor)?;
+            let hello = proto::RegisterRequest {
+                protocol_version: PROTOCOL_VERSION,
+                actor_name: "bench".into(),
+                scenes: 1,
+            };
+            let client = shm::register_client(&register)?;
+            shm::register(&client, &hello, Duration::from_secs(10), &abort)?;
+            let started = Instant::now();
             let mut fragment = fragment;
             for sequence in 0..count as u64 {
                 fragment.sequence = sequence;
                 shm::send_fragment(&publisher, &fragment)?;
             }
-            Ok(())
+            Ok(started)
         })
     };
-    sender
+    let started = sender
         .join()
         .map_err(|_| anyhow::anyhow!("the sender thread panicked"))??;
     let receive_deadline = Instant::now() + Duration::from_secs(60);
