@@ -28,9 +28,10 @@
 //! 1), the actor id and the scenario name (UTF-8); zeros up to a multiple of 8 bytes.
 //!
 //! The decoder trusts nothing: it checks the magic, the version, that the header's sizes are
-//! within [`crate::fragment`]'s bounds and add up to exactly the buffer's length, and then runs
-//! [`RolloutFragment::validate`] (NaN, flags, slot invariants). Change the layout only with a
-//! new [`LAYOUT_VERSION`].
+//! within [`crate::fragment`]'s bounds and add up to exactly the buffer's length, that reserved
+//! and padding bytes are 0, and then runs [`RolloutFragment::validate`] (NaN, flags, slot
+//! invariants); whatever it accepts encodes back to the same bytes. Change the layout only with
+//! a new [`LAYOUT_VERSION`].
 
 use std::mem::MaybeUninit;
 
@@ -310,7 +311,7 @@ pub fn decode(
             "header of {header_bytes} bytes, layout {LAYOUT_VERSION} has {HEADER_BYTES}"
         ));
     }
-    r.take(4)?;
+    let reserved = r.u32()?;
     let total = r.u64()?;
     if total != bytes.len() as u64 {
         return malformed(format!(
@@ -334,7 +335,9 @@ pub fn decode(
         scenario_bytes: count()?,
     };
     let sim_seconds = r.f32()?;
-    r.take(12)?;
+    if reserved != 0 || r.take(12)?.iter().any(|&b| b != 0) {
+        return malformed("reserved header bytes must be 0".into());
+    }
     // The dimensions' bounds first, so no size computed below can be absurd.
     RolloutFragment::check_dims(
         (
@@ -379,6 +382,9 @@ pub fn decode(
     let alive = flags("alive", r.take(cells)?)?;
     let actor_id = r.text("actor id", counts.actor_id_bytes)?;
     let scenario = r.text("scenario", counts.scenario_bytes)?;
+    if r.take(bytes.len() - r.at)?.iter().any(|&b| b != 0) {
+        return malformed("padding bytes must be 0".into());
+    }
     let fragment = RolloutFragment {
         actor_id,
         sequence,
@@ -552,6 +558,15 @@ mod tests {
         );
         let mut bytes = encode(&sample()).unwrap();
         bytes[0] = b'X';
+        assert_eq!(decode(&bytes, None).unwrap_err().reason(), "decode");
+        for reserved in [12, 90] {
+            let mut bytes = encode(&sample()).unwrap();
+            bytes[reserved] = 1;
+            assert_eq!(decode(&bytes, None).unwrap_err().reason(), "decode");
+        }
+        let mut bytes = encode(&sample()).unwrap();
+        let last = bytes.len() - 1; // padding: the sample's names end before it
+        bytes[last] = 1;
         assert_eq!(decode(&bytes, None).unwrap_err().reason(), "decode");
         assert_eq!(decode(&[0; 200], None).unwrap_err().reason(), "decode");
     }
