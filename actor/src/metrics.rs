@@ -82,3 +82,32 @@ pub fn thread_cpu_seconds() -> f64 {
     }
     now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9
 }
+
+/// Charges all the CPU time of the calling thread to `counter`, for a thread that does one job
+/// only (a transport thread): call [`ThreadCpu::record`] as it goes; dropping records the rest.
+pub struct ThreadCpu {
+    counter: Counter,
+    recorded: f64,
+}
+
+impl ThreadCpu {
+    /// Counts from the thread's start, so set-up is included.
+    pub fn new(counter: &Counter) -> Self {
+        ThreadCpu {
+            counter: counter.clone(),
+            recorded: 0.0,
+        }
+    }
+
+    pub fn record(&mut self) {
+        let now = thread_cpu_seconds();
+        self.counter.inc_by((now - self.recorded).max(0.0));
+        self.recorded = now;
+    }
+}
+
+impl Drop for ThreadCpu {
+    fn drop(&mut self) {
+        self.record();
+    }
+}

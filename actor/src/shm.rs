@@ -10,7 +10,8 @@
 //!   services vanish (it exited or was killed) the actor stops with an error.
 //!
 //! Whichever thread ends sets the shared `abort` flag, which ends the other: a send blocked
-//! on a full learner gives up once the learner is gone or the run is over.
+//! on a full learner gives up once the learner is gone or the run is over. All the CPU time of
+//! both threads counts as transport time (`junction_actor_transport_seconds_total`).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -26,15 +27,16 @@ use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
 
-use crate::metrics::{ActorMetrics, thread_cpu_seconds};
+use crate::metrics::{ActorMetrics, ThreadCpu};
 use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
 
 /// How long the learner has to answer a registration, and to deliver the first weights.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(30);
-/// How often the policy thread looks for new weights.
-const POLL: Duration = Duration::from_millis(10);
-/// How often the policy thread checks that the learner is still there.
-const LIVENESS_CHECK: Duration = Duration::from_millis(500);
+/// How often the policy thread looks for new weights (a version lasts seconds).
+const POLL: Duration = Duration::from_millis(20);
+/// How often the policy thread checks that the learner is still there (a sweep for dead
+/// processes' records, which costs a few system calls per process on the service).
+const LIVENESS_CHECK: Duration = Duration::from_secs(2);
 
 /// Runs until the learner says the run is finished (Ok) or goes away (Err).
 pub async fn run(
@@ -200,8 +202,7 @@ fn open_when_served<T>(
 }
 
 /// Creates the fragment publisher, registers (reply to `registered`), then sends every
-/// fragment of `outbox` until it closes or `abort` is set. Counts the CPU time of encoding
-/// and sending as transport time.
+/// fragment of `outbox` until it closes or `abort` is set.
 fn send_fragments(
     names: &Names,
     hello: &proto::RegisterRequest,
@@ -211,6 +212,7 @@ fn send_fragments(
     abort: &Arc<AtomicBool>,
     metrics: &ActorMetrics,
 ) -> anyhow::Result<()> {
+    let mut cpu = ThreadCpu::new(&metrics.transport_seconds);
     let setup = || -> anyhow::Result<_> {
         let node = shm::node("junction-actor")?;
         let (fragments, register) =
@@ -243,9 +245,8 @@ fn send_fragments(
             Err(RecvTimeoutError::Timeout) => continue,
             Err(RecvTimeoutError::Disconnected) => break,
         };
-        let cpu = thread_cpu_seconds();
         let sent = shm::send_fragment(&publisher, &fragment);
-        metrics.transport_seconds.inc_by(thread_cpu_seconds() - cpu);
+        cpu.record();
         match sent {
             Ok(_) => {}
             // Given up on purpose: the learner is gone or the run is over.
@@ -266,6 +267,7 @@ fn follow_policy(
     finished: &AtomicBool,
     metrics: &ActorMetrics,
 ) -> anyhow::Result<()> {
+    let mut cpu = ThreadCpu::new(&metrics.transport_seconds);
     let setup = || -> anyhow::Result<_> {
         let node = shm::node("junction-actor")?;
         let service = open_when_served(&names.weights.to_string(), connect_timeout, abort, || {
@@ -273,7 +275,7 @@ fn follow_policy(
             Ok(shm::learner_present(&service).then_some(service))
         })?;
         let subscriber = shm::weights_subscriber(&service)?;
-        let current = next_weights(&subscriber, metrics, Some(ANSWER_TIMEOUT), abort)?
+        let current = next_weights(&subscriber, Some(ANSWER_TIMEOUT), abort)?
             .context("the learner sent no weights")?;
         Ok((node, service, subscriber, current))
     };
@@ -295,7 +297,8 @@ fn follow_policy(
     }
     let mut last_check = Instant::now();
     while !abort.load(Ordering::Relaxed) {
-        if let Some(weights) = next_weights(&subscriber, metrics, None, abort)? {
+        cpu.record();
+        if let Some(weights) = next_weights(&subscriber, None, abort)? {
             let done = weights.run_finished;
             weights_tx.send_replace(Arc::new(weights));
             if done {
@@ -316,17 +319,14 @@ fn follow_policy(
     Ok(())
 }
 
-/// The newest weights waiting, if any; with `wait`, waits up to that long for them. Counts the
-/// time spent receiving and decoding them as transport time.
+/// The newest weights waiting, if any; with `wait`, waits up to that long for them.
 fn next_weights(
     subscriber: &shm::BytesSubscriber,
-    metrics: &ActorMetrics,
     wait: Option<Duration>,
     abort: &AtomicBool,
 ) -> anyhow::Result<Option<proto::PolicyWeights>> {
     let deadline = wait.map(|w| Instant::now() + w);
     loop {
-        let cpu = thread_cpu_seconds();
         let mut newest = None;
         while let Some(sample) = subscriber
             .receive()
@@ -337,7 +337,6 @@ fn next_weights(
                     .context("the learner's weights are not a PolicyWeights message")?,
             );
         }
-        metrics.transport_seconds.inc_by(thread_cpu_seconds() - cpu);
         if let Some(weights) = newest {
             if weights.protocol_version != PROTOCOL_VERSION {
                 bail!(

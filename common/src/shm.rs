@@ -52,6 +52,11 @@ pub const FRAGMENT_BUFFER: usize = 2;
 /// What an actor's publisher reserves per fragment sample before it knows the run (a default
 /// fragment of 30 agents × 200 steps is about 2.7 MB); a larger fragment makes it grow.
 pub const FRAGMENT_SAMPLE_BYTES: usize = 4 << 20;
+/// How long a waiting publisher sleeps between retries: an eighth of the time waited so far,
+/// within these bounds. A freed slot is taken within 20 ms, well before the learner has used
+/// up the other fragment buffered for this actor.
+const BACKOFF_MIN: Duration = Duration::from_micros(20);
+const BACKOFF_MAX: Duration = Duration::from_millis(20);
 /// Registration messages are small; the ports grow if one is larger.
 const REGISTER_BYTES: usize = 4096;
 
@@ -239,12 +244,14 @@ pub fn fragment_publisher(
         .allocation_strategy(AllocationStrategy::PowerOfTwo)
         .max_loaned_samples(1)
         .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
-        .set_backpressure_handler(move |_| {
+        .set_backpressure_handler(move |info| {
             if abort.load(Ordering::Relaxed) {
-                BackpressureAction::DiscardDataAndFail
-            } else {
-                BackpressureAction::Retry
+                return BackpressureAction::DiscardDataAndFail;
             }
+            // Sleep between retries instead of iceoryx2's default of thousands of
+            // sched_yield calls: a waiting actor should leave its core to the learner.
+            std::thread::sleep((info.elapsed_time / 8).clamp(BACKOFF_MIN, BACKOFF_MAX));
+            BackpressureAction::Retry
         })
         .create()
         .map_err(failed("creating the fragment publisher"))

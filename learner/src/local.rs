@@ -35,11 +35,17 @@ pub struct ActorCommand {
     pub program: PathBuf,
     pub shm_name: String,
     pub scenes: u32,
+    /// Actor `i` (from 1) serves /metrics on 127.0.0.1:(port + i - 1).
+    pub metrics_port: Option<u16>,
 }
 
 impl ActorCommand {
     /// The `actor` binary next to this executable.
-    pub fn beside_this_executable(shm_name: &str, scenes: u32) -> anyhow::Result<Self> {
+    pub fn beside_this_executable(
+        shm_name: &str,
+        scenes: u32,
+        metrics_port: Option<u16>,
+    ) -> anyhow::Result<Self> {
         let exe = std::env::current_exe().context("locating the learner executable")?;
         let program = exe.with_file_name("actor");
         anyhow::ensure!(
@@ -51,6 +57,7 @@ impl ActorCommand {
             program,
             shm_name: shm_name.to_string(),
             scenes,
+            metrics_port,
         })
     }
 
@@ -65,6 +72,10 @@ impl ActorCommand {
             .args(["--scenes", &self.scenes.to_string()])
             .stdin(Stdio::null())
             .process_group(0);
+        if let Some(port) = self.metrics_port {
+            let port = usize::from(port) + index - 1;
+            command.args(["--metrics-addr", &format!("127.0.0.1:{port}")]);
+        }
         // SAFETY: between fork and exec only async-signal-safe calls (prctl, getppid).
         unsafe {
             command.pre_exec(move || {

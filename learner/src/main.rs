@@ -163,6 +163,9 @@ struct ServeArgs {
     #[arg(long, value_name = "S", default_value_t = 1,
           value_parser = clap::value_parser!(u32).range(1..=256))]
     local_actor_scenes: u32,
+    /// Local actor i (from 1) serves Prometheus /metrics on 127.0.0.1:(PORT + i - 1).
+    #[arg(long, value_name = "PORT")]
+    local_actor_metrics_port: Option<u16>,
 }
 
 #[derive(Args)]
@@ -310,6 +313,14 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     .filter_map(|(key, value)| value.map(|v| format!("{key}={v}")))
     .collect();
     let config = args.source.load(fallback, &flags)?;
+    if let Some(port) = args.local_actor_metrics_port
+        && usize::from(port) + args.local_actors > usize::from(u16::MAX) + 1
+    {
+        bail!(
+            "--local-actor-metrics-port {port}: {} actors need ports up to 65535",
+            args.local_actors
+        );
+    }
     if args.local_actors > 0 && config.server.shm_name.is_empty() {
         bail!(
             "--local-actors connects the actors over shared memory: server.shm_name must not be empty"
@@ -397,7 +408,11 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         "learner serving"
     );
     let local_actors = if args.local_actors > 0 {
-        let command = ActorCommand::beside_this_executable(shm_name, args.local_actor_scenes)?;
+        let command = ActorCommand::beside_this_executable(
+            shm_name,
+            args.local_actor_scenes,
+            args.local_actor_metrics_port,
+        )?;
         Some(LocalActors::start(args.local_actors, command, restarts)?)
     } else {
         None

@@ -31,7 +31,7 @@ use crate::metrics::TRANSPORT_SHM;
 use crate::server::Shared;
 
 /// How often the server counts connected actors and clears dead processes' resources.
-const HOUSEKEEPING: Duration = Duration::from_millis(500);
+const HOUSEKEEPING: Duration = Duration::from_secs(1);
 /// Longest sleep of an idle server: bounds the latency of a fragment, a registration or a
 /// weights version while nothing else happens.
 const MAX_IDLE_SLEEP: Duration = Duration::from_millis(4);
