@@ -4,6 +4,7 @@
 
 pub mod config;
 pub mod fragment;
+pub mod grpc_codec;
 pub mod lcf;
 pub mod policy;
 pub mod scenarios;
