@@ -33,7 +33,7 @@ use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
 /// How long the learner has to answer a registration, and to deliver the first weights.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(30);
 /// How often the policy thread looks for new weights (a version lasts seconds).
-const POLL: Duration = Duration::from_millis(20);
+const POLL: Duration = Duration::from_millis(50);
 /// How often the policy thread checks that the learner is still there (a sweep for dead
 /// processes' records, which costs a few system calls per process on the service).
 const LIVENESS_CHECK: Duration = Duration::from_secs(2);

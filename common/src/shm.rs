@@ -53,10 +53,10 @@ pub const FRAGMENT_BUFFER: usize = 2;
 /// fragment of 30 agents × 200 steps is about 2.7 MB); a larger fragment makes it grow.
 pub const FRAGMENT_SAMPLE_BYTES: usize = 4 << 20;
 /// How long a waiting publisher sleeps between retries: an eighth of the time waited so far,
-/// within these bounds. A freed slot is taken within 20 ms, well before the learner has used
-/// up the other fragment buffered for this actor.
+/// within these bounds. A freed slot is taken within 50 ms, well before the learner has used
+/// up the other fragment buffered for this actor (a CPU learner takes about one per second).
 const BACKOFF_MIN: Duration = Duration::from_micros(20);
-const BACKOFF_MAX: Duration = Duration::from_millis(20);
+const BACKOFF_MAX: Duration = Duration::from_millis(50);
 /// Registration messages are small; the ports grow if one is larger.
 const REGISTER_BYTES: usize = 4096;
 
