@@ -15,7 +15,11 @@ use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_common::{GRPC_CONNECTION_WINDOW_BYTES, GRPC_STREAM_WINDOW_BYTES};
 
 use crate::metrics::ActorMetrics;
-use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
+use crate::session::{ActorOptions, RunInfo, rollout_loop};
+
+/// Fragments buffered between the rollout thread and the push stream; when full, the rollout
+/// thread waits (the learner's backpressure reaches the simulator).
+const OUTBOX_FRAGMENTS: usize = 4;
 
 /// Connects, retrying with exponential back-off until `timeout` has passed.
 async fn connect(url: &str, timeout: Duration) -> anyhow::Result<Channel> {

@@ -18,10 +18,6 @@ use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 use crate::metrics::ActorMetrics;
 use crate::rollout::{RolloutWorker, derive_seed};
 
-/// Fragments buffered between the rollout thread and the transport; when full, the rollout
-/// thread waits (the learner's backpressure reaches the simulator).
-pub const OUTBOX_FRAGMENTS: usize = 4;
-
 pub struct ActorOptions {
     pub name: String,
     pub scenes: usize,

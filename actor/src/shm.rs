@@ -28,8 +28,11 @@ use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
 
 use crate::metrics::{ActorMetrics, ThreadCpu};
-use crate::session::{ActorOptions, OUTBOX_FRAGMENTS, RunInfo, rollout_loop};
+use crate::session::{ActorOptions, RunInfo, rollout_loop};
 
+/// Fragments waiting between the rollout thread and the sender thread. One: the learner
+/// already buffers two per actor, and every fragment queued on the way ages (policy lag).
+const OUTBOX_FRAGMENTS: usize = 1;
 /// How long the learner has to answer a registration, and to deliver the first weights.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(30);
 /// How often the policy thread looks for new weights (a version lasts seconds).
