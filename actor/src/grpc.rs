@@ -10,7 +10,7 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::{Channel, Endpoint};
 
-use junction_common::fragment::PROTOCOL_VERSION;
+use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_common::{GRPC_CONNECTION_WINDOW_BYTES, GRPC_STREAM_WINDOW_BYTES};
 
@@ -117,7 +117,7 @@ pub async fn run(
         let metrics = Arc::clone(&metrics);
         let scenes = options.scenes;
         tokio::task::spawn_blocking(move || {
-            let send = |fragment: junction_common::fragment::RolloutFragment| {
+            let send = |fragment: RolloutFragment| {
                 let started = Instant::now();
                 let message = fragment.into_proto();
                 metrics
