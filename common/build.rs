@@ -10,6 +10,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         unsafe { std::env::set_var("PROTOC", protoc) };
     }
     println!("cargo:rerun-if-changed=../proto/junction.proto");
-    tonic_prost_build::configure().compile_protos(&["../proto/junction.proto"], &["../proto"])?;
+    tonic_prost_build::configure()
+        .codec_path("crate::grpc_codec::ContiguousCodec")
+        .compile_protos(&["../proto/junction.proto"], &["../proto"])?;
     Ok(())
 }

@@ -1,56 +1,21 @@
 #!/usr/bin/env bash
-# README command 1's job: one `learner serve` and ACTORS `actor` processes talking gRPC on
-# loopback, training on the default 4-way intersection for MAX_SECONDS.
+# README command 1's job: `learner serve --local-actors ACTORS`, the one-command local mode. The
+# learner starts ACTORS `actor` processes connected to it over shared memory, restarts any that
+# dies, and stops them when it exits; it trains on the default 4-way intersection for
+# MAX_SECONDS.
 #   MAX_SECONDS=600 ACTORS=2 scripts/run-local.sh [extra learner flags, e.g. --set ppo.learning_rate=1e-4]
 # Ctrl-C stops the run cleanly (the learner writes a final checkpoint first).
 set -euo pipefail
-# Children get their own process groups, so a terminal's Ctrl-C reaches only this script,
-# which then asks each child exactly once to stop (a second signal makes the learner skip its
-# final checkpoint).
-set -m
 cd "$(dirname "$0")/.."
 
 BIN=${BIN:-target/release}
 ACTORS=${ACTORS:-2}
 MAX_SECONDS=${MAX_SECONDS:-300}
 RUN_DIR=${RUN_DIR:-runs/local-$(date +%Y%m%d-%H%M%S)}
-pids=()
-
-stop() {
-    trap - INT TERM
-    echo "run-local: stopping"
-    kill -TERM "${pids[@]}" 2>/dev/null || true
-    wait || true
-    exit 130
-}
-trap stop INT TERM
 
 mkdir -p "$RUN_DIR"
-"$BIN/learner" serve --addr 127.0.0.1:0 --metrics-addr 127.0.0.1:0 --run-dir "$RUN_DIR" \
-    --max-seconds "$MAX_SECONDS" "$@" &
-learner=$!
-pids+=("$learner")
-
-# The learner writes its bound addresses once it serves.
-for _ in $(seq 1 600); do
-    [ -s "$RUN_DIR/endpoints.json" ] && break
-    kill -0 "$learner" 2>/dev/null || { echo "run-local: the learner exited during start-up" >&2; exit 1; }
-    sleep 0.1
-done
-grpc=$(sed -n 's/.*"grpc":"\([^"]*\)".*/\1/p' "$RUN_DIR/endpoints.json")
-metrics=$(sed -n 's/.*"metrics":"\([^"]*\)".*/\1/p' "$RUN_DIR/endpoints.json")
-echo "run-local: learner on $grpc, metrics at http://$metrics/metrics, run directory $RUN_DIR"
-
-for i in $(seq 1 "$ACTORS"); do
-    "$BIN/actor" --learner "http://$grpc" --seed "$i" --name "local-$i" &
-    pids+=("$!")
-done
-
-status=0
-wait "$learner" || status=$?
-# Actors exit by themselves once the learner announces the end of the run.
-for pid in "${pids[@]:1}"; do
-    wait "$pid" || true
-done
-echo "run-local: finished (learner exit status $status); checkpoints in $RUN_DIR/checkpoints, curve in $RUN_DIR/progress.jsonl"
-exit "$status"
+echo "run-local: ${ACTORS} local actors over shared memory; run directory $RUN_DIR (bound addresses in $RUN_DIR/endpoints.json)"
+# exec: the terminal's Ctrl-C goes to the learner alone, which stops its actors in order.
+# A shared-memory name of this run's own, so a second local run on the host does not clash.
+exec "$BIN/learner" serve --addr 127.0.0.1:0 --metrics-addr 127.0.0.1:0 --run-dir "$RUN_DIR" \
+    --shm-name "local-$$" --local-actors "$ACTORS" --max-seconds "$MAX_SECONDS" "$@"

@@ -1,6 +1,7 @@
 //! The actor side of the gRPC transport: register, follow the policy stream, and push
 //! fragments produced by the rollout thread; reconnect with back-off when the learner goes
-//! away (see README, "Faults").
+//! away (see README, "Faults"). What happens between registering and sending is the
+//! transport-independent `session`.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -13,17 +14,15 @@ use tonic::service::Interceptor;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use junction_common::auth::{self, Token};
-use junction_common::config::{RolloutConfig, RunConfig, ScenarioConfig};
-use junction_common::fragment::{MAX_STEPS, PROTOCOL_VERSION};
-use junction_common::lcf::LcfDistribution;
-use junction_common::policy::{self, Policy};
+use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_client::LearnerClient};
-use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+use junction_common::{GRPC_CONNECTION_WINDOW_BYTES, GRPC_STREAM_WINDOW_BYTES};
 
-use crate::lcf_column::blob_distribution;
 use crate::metrics::ActorMetrics;
 use crate::reconnect::{Backoff, OutboxStream, retryable};
-use crate::rollout::{RolloutWorker, derive_seed};
+use crate::session::{
+    ActorOptions, Registration, RolloutPlan, RunTerms, check_weights, rollout_loop,
+};
 
 /// Fragments buffered between the rollout thread and the push stream; when full, the rollout
 /// thread waits (the learner's backpressure reaches the simulator). While the learner is
@@ -37,14 +36,9 @@ const FINISH_GRACE: Duration = Duration::from_secs(2);
 /// HTTP/2 pings that notice a learner host that vanished without closing the connection.
 const KEEPALIVE: Duration = Duration::from_secs(20);
 
-pub struct ActorOptions {
+/// How to reach the learner over gRPC.
+pub struct GrpcOptions {
     pub learner: String,
-    pub name: String,
-    pub scenes: usize,
-    pub seed: u64,
-    /// Give up once the learner has been unreachable this long, at start or after losing it
-    /// (`None`: retry for ever).
-    pub give_up_after: Option<Duration>,
     /// First and largest wait between connection attempts.
     pub retry_initial: Duration,
     pub retry_max: Duration,
@@ -70,13 +64,15 @@ fn read(path: &PathBuf, what: &str) -> anyhow::Result<Vec<u8>> {
 }
 
 /// The learner's endpoint; a bad URL or unreadable TLS files are errors before any attempt.
-fn endpoint(options: &ActorOptions) -> anyhow::Result<Endpoint> {
+fn endpoint(options: &GrpcOptions) -> anyhow::Result<Endpoint> {
     let url = &options.learner;
     let mut endpoint = Endpoint::from_shared(url.to_string())
         .with_context(|| {
             format!("--learner {url:?} is not a valid URL (expected e.g. http://127.0.0.1:50051)")
         })?
         .connect_timeout(Duration::from_secs(5))
+        .initial_stream_window_size(GRPC_STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(GRPC_CONNECTION_WINDOW_BYTES)
         .tcp_nodelay(true)
         .http2_keep_alive_interval(KEEPALIVE)
         .keep_alive_timeout(KEEPALIVE)
@@ -129,74 +125,6 @@ impl Interceptor for TokenHeader {
 
 type Client = LearnerClient<tonic::service::interceptor::InterceptedService<Channel, TokenHeader>>;
 
-/// What the learner told this actor to simulate; a restarted learner must say the same.
-#[derive(Clone, PartialEq)]
-struct RunTerms {
-    scenario_toml: String,
-    fragment_length: u32,
-    obs_dim: u32,
-    action_dim: u32,
-    obs_layout_version: u32,
-    run_seed: u64,
-}
-
-impl RunTerms {
-    fn of(reply: &proto::RegisterReply) -> Self {
-        RunTerms {
-            scenario_toml: reply.scenario_toml.clone(),
-            fragment_length: reply.fragment_length,
-            obs_dim: reply.obs_dim,
-            action_dim: reply.action_dim,
-            obs_layout_version: reply.obs_layout_version,
-            run_seed: reply.run_seed,
-        }
-    }
-
-    /// Checks everything taken from the learner's reply before anything is allocated for it.
-    fn check(&self, max_message_bytes: usize) -> anyhow::Result<ScenarioConfig> {
-        if self.obs_layout_version != OBS_LAYOUT_VERSION {
-            bail!(
-                "the learner uses observation layout {}; this actor uses {OBS_LAYOUT_VERSION}",
-                self.obs_layout_version
-            );
-        }
-        let scenario =
-            ScenarioConfig::from_toml(&self.scenario_toml).context("the learner's scenario")?;
-        // The policy takes the scenario's observation, or that and CoPO's LCF angle.
-        let policy_obs_dims = [
-            scenario.obs_dim(),
-            scenario.obs_dim() + LcfDistribution::OBS_COLUMNS,
-        ];
-        if !policy_obs_dims.contains(&(self.obs_dim as usize))
-            || self.action_dim as usize != ACTION_DIM
-        {
-            bail!(
-                "the learner's dimensions {}×{} do not match its scenario",
-                self.obs_dim,
-                self.action_dim
-            );
-        }
-        let steps = self.fragment_length as usize;
-        if !(1..=MAX_STEPS).contains(&steps) {
-            bail!("the learner asks for fragments of {steps} steps (1..={MAX_STEPS})");
-        }
-        let run = RunConfig {
-            scenario: scenario.clone(),
-            rollout: RolloutConfig {
-                fragment_length: steps,
-            },
-            ..RunConfig::default()
-        };
-        let bytes = run.fragment_bytes_estimate();
-        if bytes > max_message_bytes {
-            bail!(
-                "the learner's fragments (about {bytes} bytes) exceed --max-message-bytes {max_message_bytes}"
-            );
-        }
-        Ok(scenario)
-    }
-}
-
 /// How one connection ended.
 enum SessionEnd {
     /// The learner finished the run on purpose.
@@ -229,6 +157,7 @@ fn call_failed(status: tonic::Status, what: &str, connected: bool) -> SessionEnd
 /// rollout thread itself.
 struct Actor {
     options: ActorOptions,
+    grpc: GrpcOptions,
     metrics: Arc<ActorMetrics>,
     outbox_tx: Option<mpsc::Sender<proto::RolloutFragment>>,
     outbox: Arc<Mutex<mpsc::Receiver<proto::RolloutFragment>>>,
@@ -241,18 +170,24 @@ struct Actor {
 
 /// Runs until the learner says the run is finished (Ok), the learner stays unreachable longer
 /// than `give_up_after`, or something retrying cannot fix happens (Err).
-pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::Result<()> {
-    let endpoint = endpoint(&options)?;
+pub async fn run(
+    options: ActorOptions,
+    grpc: GrpcOptions,
+    metrics: Arc<ActorMetrics>,
+) -> anyhow::Result<()> {
+    let endpoint = endpoint(&grpc)?;
     let jitter_seed = options.seed
         ^ u64::from(std::process::id())
         ^ std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_nanos() as u64)
             .unwrap_or(0);
-    let mut backoff = Backoff::new(options.retry_initial, options.retry_max, jitter_seed);
+    let mut backoff = Backoff::new(grpc.retry_initial, grpc.retry_max, jitter_seed);
+    let busy_tracker = tokio::spawn(count_runtime_busy_time(Arc::clone(&metrics)));
     let (outbox_tx, outbox_rx) = mpsc::channel(OUTBOX_FRAGMENTS);
     let mut actor = Actor {
         options,
+        grpc,
         metrics,
         outbox_tx: Some(outbox_tx),
         outbox: Arc::new(Mutex::new(outbox_rx)),
@@ -282,7 +217,7 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
                 {
                     break Err(error.context(format!(
                         "the learner at {} has been unreachable for {:.0} s (--connect-timeout)",
-                        actor.options.learner,
+                        actor.grpc.learner,
                         waited.as_secs_f64()
                     )));
                 }
@@ -291,7 +226,7 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
                     tracing::info!(error = %format!("{error:#}"), retry_in_ms = delay.as_millis() as u64, "learner still unreachable");
                 } else {
                     tracing::warn!(
-                        learner = %actor.options.learner,
+                        learner = %actor.grpc.learner,
                         error = %format!("{error:#}"),
                         retry_in_ms = delay.as_millis() as u64,
                         "learner unreachable; retrying with back-off (fragments already produced wait in the outbox)"
@@ -302,6 +237,7 @@ pub async fn run(options: ActorOptions, metrics: Arc<ActorMetrics>) -> anyhow::R
             }
         }
     };
+    busy_tracker.abort();
     actor.stop().await.and(outcome)
 }
 
@@ -313,7 +249,7 @@ impl Actor {
             Ok(Err(e)) => return lost(anyhow::Error::new(e).context("connecting"), false),
             Err(_) => return lost(anyhow::anyhow!("connecting timed out"), false),
         };
-        let header = match &self.options.token {
+        let header = match &self.grpc.token {
             Some(token) => match token.header_value().parse() {
                 Ok(value) => Some(value),
                 Err(_) => {
@@ -324,7 +260,7 @@ impl Actor {
             },
             None => None,
         };
-        let bytes = self.options.max_message_bytes;
+        let bytes = self.grpc.max_message_bytes;
         let mut client: Client = LearnerClient::with_interceptor(channel, TokenHeader(header))
             .max_decoding_message_size(bytes)
             .max_encoding_message_size(bytes);
@@ -338,26 +274,20 @@ impl Actor {
             Ok(Err(status)) => return call_failed(status, "registering with the learner", false),
             Err(_) => return lost(anyhow::anyhow!("registering timed out"), false),
         };
-        if reply.protocol_version != PROTOCOL_VERSION {
-            return SessionEnd::Fatal(anyhow::anyhow!(
-                "the learner speaks protocol {}; this actor speaks {PROTOCOL_VERSION}",
-                reply.protocol_version
-            ));
-        }
-        let terms = RunTerms::of(&reply);
-        let scenario = match terms.check(bytes) {
-            Ok(scenario) => scenario,
+        let registration = match Registration::check(&reply, Some(bytes)) {
+            Ok(registration) => registration,
             Err(e) => return SessionEnd::Fatal(e),
         };
-        if self.terms.as_ref().is_some_and(|known| *known != terms) {
+        if self
+            .terms
+            .as_ref()
+            .is_some_and(|known| *known != registration.terms)
+        {
             return SessionEnd::Fatal(anyhow::anyhow!(
                 "the learner came back with another scenario, fragment length or seed; restart this actor to join the new run"
             ));
         }
-        let actor_id = reply.actor_id.clone();
-        if actor_id.len() > junction_common::fragment::MAX_NAME_BYTES {
-            return SessionEnd::Fatal(anyhow::anyhow!("the learner's actor id is too long"));
-        }
+        let actor_id = registration.actor_id.clone();
 
         let watch = proto::WatchPolicyRequest {
             protocol_version: PROTOCOL_VERSION,
@@ -400,9 +330,7 @@ impl Actor {
                 "reconnected and registered again"
             );
         } else {
-            tracing::Span::current()
-                .record("id", actor_id.as_str())
-                .record("scenario", scenario.name.as_str());
+            registration.record_in_span();
             tracing::info!(scenes = self.options.scenes, "registered");
         }
         let finished_now = first.run_finished;
@@ -413,10 +341,12 @@ impl Actor {
             None => {
                 let (weights, weights_rx) = watch::channel(Arc::new(first));
                 self.weights = Some(weights);
-                self.start_rollout(&reply, scenario, weights_rx);
+                // Seeds come from the first registration: the scenes keep running across
+                // reconnects.
+                self.start_rollout(registration.plan(&self.options), weights_rx);
             }
         }
-        self.terms = Some(terms);
+        self.terms = Some(registration.terms);
         if finished_now {
             self.finished.store(true, Ordering::Relaxed);
             return SessionEnd::Finished;
@@ -508,35 +438,26 @@ impl Actor {
 
     fn start_rollout(
         &mut self,
-        reply: &proto::RegisterReply,
-        scenario: ScenarioConfig,
+        plan: RolloutPlan,
         weights: watch::Receiver<Arc<proto::PolicyWeights>>,
     ) {
-        // Seeds come from the first registration: the scenes keep running across reconnects.
-        let seed = derive_seed(
-            reply.run_seed ^ self.options.seed,
-            reply.actor_id.bytes().map(u64::from).sum(),
-        );
         let Some(outbox) = self.outbox_tx.take() else {
             return;
         };
         let finished = Arc::clone(&self.finished);
         let metrics = Arc::clone(&self.metrics);
-        let fragment_length = reply.fragment_length as usize;
-        let scenes = self.options.scenes;
         let actor_id = self.actor_id.subscribe();
         self.rollout = Some(tokio::task::spawn_blocking(move || {
-            rollout_loop(
-                scenario,
-                scenes,
-                seed,
-                fragment_length,
-                actor_id,
-                weights,
-                outbox,
-                finished,
-                &metrics,
-            )
+            let send = |fragment: RolloutFragment| {
+                let started = Instant::now();
+                let message = fragment.into_proto();
+                metrics
+                    .transport_seconds
+                    .inc_by(started.elapsed().as_secs_f64());
+                // Err: the actor is stopping (run finished, or it gave up on the learner).
+                outbox.blocking_send(message).is_ok()
+            };
+            rollout_loop(plan, actor_id, weights, send, &finished, &metrics)
         }));
     }
 
@@ -591,228 +512,23 @@ async fn follow_policy(
     }
 }
 
-/// The envelope of a weights message (the blob itself is checked when decoded).
-fn check_weights(weights: &proto::PolicyWeights) -> anyhow::Result<()> {
-    if weights.protocol_version != PROTOCOL_VERSION {
-        bail!(
-            "policy v{} comes in protocol {}; this actor speaks {PROTOCOL_VERSION}",
-            weights.version,
-            weights.protocol_version
-        );
-    }
-    if weights.format != "safetensors" {
-        bail!(
-            "policy v{} has unknown format {:?}",
-            weights.version,
-            weights.format
-        );
-    }
-    Ok(())
-}
-
-/// Simulates the agent count the learner's curriculum asks for with `weights`.
-fn apply_active_agents(
-    worker: &mut RolloutWorker,
-    weights: &proto::PolicyWeights,
-    metrics: &ActorMetrics,
-) -> anyhow::Result<()> {
-    let before = worker.active_agents();
-    let requested = usize::try_from(weights.active_agents).unwrap_or(usize::MAX);
-    if worker
-        .set_active_agents(requested)
-        .context("rebuilding the scenes for the curriculum's agent count")?
-    {
-        tracing::info!(
-            old_agents = before,
-            new_agents = worker.active_agents(),
-            version = weights.version,
-            "scenes rebuilt with the curriculum's agent count"
-        );
-    }
-    metrics.scene_agents.set(worker.active_agents() as i64);
-    Ok(())
-}
-
-#[allow(clippy::too_many_arguments)]
-fn rollout_loop(
-    scenario: ScenarioConfig,
-    scenes: usize,
-    seed: u64,
-    fragment_length: usize,
-    mut actor_id: watch::Receiver<String>,
-    mut weights: watch::Receiver<Arc<proto::PolicyWeights>>,
-    outbox: mpsc::Sender<proto::RolloutFragment>,
-    finished: Arc<AtomicBool>,
-    metrics: &ActorMetrics,
-) -> anyhow::Result<()> {
-    let first_id = actor_id.borrow_and_update().clone();
-    let _span =
-        tracing::info_span!("rollout", actor = %first_id, scenario = %scenario.name).entered();
-    // The blob says which kind of policy it is (Gaussian or DQN's Q-policy) and whether it
-    // takes CoPO's LCF angle: no flag needed.
-    type Loaded = (Box<dyn Policy>, Option<LcfDistribution>);
-    let load = |w: &proto::PolicyWeights| -> anyhow::Result<Loaded> {
-        let (policy, meta) =
-            policy::decode(&w.data, tch::Device::Cpu).context("decoding policy weights")?;
-        let lcf = blob_distribution(&w.data).context("reading the policy's LCF distribution")?;
-        let columns = lcf.map_or(0, |_| LcfDistribution::OBS_COLUMNS);
-        if meta.obs_layout_version != OBS_LAYOUT_VERSION
-            || policy.obs_dim() != scenario.obs_dim() + columns
-            || policy.action_dim() != ACTION_DIM
-        {
-            bail!(
-                "policy v{} was trained for another observation layout or size or action size",
-                w.version
-            );
-        }
-        Ok((policy, lcf))
+/// Adds the async runtime's busy time to the transport time every second: in a gRPC actor
+/// the runtime does nothing but the transport (protobuf encoding, HTTP/2, sockets, the policy
+/// stream).
+async fn count_runtime_busy_time(metrics: Arc<ActorMetrics>) {
+    let runtime = tokio::runtime::Handle::current().metrics();
+    let busy = || -> Duration {
+        (0..runtime.num_workers())
+            .map(|w| runtime.worker_total_busy_duration(w))
+            .sum()
     };
-    let initial = Arc::clone(&weights.borrow_and_update());
-    let (policy, lcf) = load(&initial)?;
-    let mut worker = RolloutWorker::new(
-        &scenario,
-        scenes,
-        seed,
-        fragment_length,
-        policy,
-        initial.version,
-        first_id,
-    )
-    .context("building the scenes")?;
-    worker.set_lcf_distribution(lcf);
-    metrics.policy_version.set(initial.version as i64);
-    apply_active_agents(&mut worker, &initial, metrics)?;
-    while !finished.load(Ordering::Relaxed) {
-        if actor_id.has_changed().unwrap_or(false) {
-            // Registered again with a restarted learner: new fragments carry the new id.
-            worker.set_actor_id(actor_id.borrow_and_update().clone());
-        }
-        if weights.has_changed().unwrap_or(false) {
-            let latest = Arc::clone(&weights.borrow_and_update());
-            // Any other version, older too: a restarted learner continues from its checkpoint.
-            if latest.version != worker.policy_version() {
-                let (policy, lcf) = load(&latest)?;
-                worker.set_policy(policy, latest.version);
-                worker.set_lcf_distribution(lcf);
-                metrics.policy_version.set(latest.version as i64);
-                metrics.policy_switches.inc();
-                tracing::debug!(version = latest.version, "switched policy");
-            }
-            apply_active_agents(&mut worker, &latest, metrics)?;
-        }
-        let _collect =
-            tracing::info_span!("collect", policy_version = worker.policy_version()).entered();
-        let (fragments, timings) = worker.collect().context("policy inference")?;
-        metrics.inference_seconds.inc_by(timings.inference_s);
-        metrics.simulation_seconds.inc_by(timings.simulation_s);
-        for fragment in fragments {
-            metrics.env_steps.inc_by(fragment.steps as u64);
-            metrics.agent_steps.inc_by(fragment.agent_steps() as u64);
-            if outbox.blocking_send(fragment.into_proto()).is_err() {
-                // The actor is stopping (run finished, or it gave up on the learner).
-                return Ok(());
-            }
-            metrics.fragments_sent.inc();
-        }
-    }
-    Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn terms() -> RunTerms {
-        let scenario = ScenarioConfig::default();
-        RunTerms {
-            scenario_toml: scenario.to_toml(),
-            fragment_length: 200,
-            obs_dim: scenario.obs_dim() as u32,
-            action_dim: ACTION_DIM as u32,
-            obs_layout_version: OBS_LAYOUT_VERSION,
-            run_seed: 1,
-        }
-    }
-
-    #[test]
-    fn a_hostile_or_foreign_registration_reply_is_refused_before_anything_is_built() {
-        let limit = 64 << 20;
-        assert_eq!(terms().check(limit).unwrap().agents, 30);
-        let refused = |t: RunTerms, bytes: usize, needle: &str| {
-            let err = format!("{:#}", t.check(bytes).unwrap_err());
-            assert!(err.contains(needle), "{err} lacks {needle:?}");
-        };
-        refused(
-            RunTerms {
-                obs_layout_version: OBS_LAYOUT_VERSION + 1,
-                ..terms()
-            },
-            limit,
-            "observation layout",
-        );
-        for steps in [0, u32::MAX] {
-            refused(
-                RunTerms {
-                    fragment_length: steps,
-                    ..terms()
-                },
-                limit,
-                "fragments of",
-            );
-        }
-        refused(
-            RunTerms {
-                obs_dim: 90,
-                ..terms()
-            },
-            limit,
-            "dimensions",
-        );
-        let huge = ScenarioConfig {
-            agents: 1_000_000,
-            ..ScenarioConfig::default()
-        };
-        refused(
-            RunTerms {
-                scenario_toml: huge.to_toml(),
-                ..terms()
-            },
-            limit,
-            "scenario.agents",
-        );
-        refused(
-            RunTerms {
-                scenario_toml: "agents = \"many\"".into(),
-                ..terms()
-            },
-            limit,
-            "scenario",
-        );
-        // 200 steps × 30 agents × 91 values do not fit in 1 MB messages.
-        refused(terms(), 1 << 20, "--max-message-bytes");
-    }
-
-    #[test]
-    fn weights_of_another_protocol_or_format_are_refused() {
-        let ok = proto::PolicyWeights {
-            protocol_version: PROTOCOL_VERSION,
-            format: "safetensors".into(),
-            ..Default::default()
-        };
-        assert!(check_weights(&ok).is_ok());
-        assert!(
-            check_weights(&proto::PolicyWeights {
-                protocol_version: PROTOCOL_VERSION + 1,
-                ..ok.clone()
-            })
-            .is_err()
-        );
-        assert!(
-            check_weights(&proto::PolicyWeights {
-                format: "pickle".into(),
-                ..ok
-            })
-            .is_err()
-        );
+    let mut counted = busy();
+    loop {
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        let now = busy();
+        metrics
+            .transport_seconds
+            .inc_by(now.saturating_sub(counted).as_secs_f64());
+        counted = now;
     }
 }

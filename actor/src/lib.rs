@@ -10,4 +10,6 @@ pub mod reconnect;
 pub mod render;
 pub mod replay;
 pub mod rollout;
+pub mod session;
+pub mod shm;
 pub mod sim;

@@ -11,7 +11,8 @@ use tracing::Instrument;
 
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
-use junction_actor::{bench, eval, grpc};
+use junction_actor::session::ActorOptions;
+use junction_actor::{bench, eval, grpc, shm};
 use junction_common::auth::Token;
 use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
 use junction_common::scenarios;
@@ -52,7 +53,8 @@ enum Command {
 
 #[derive(Args)]
 struct RunArgs {
-    /// The learner's gRPC address.
+    /// The learner: its gRPC address (http://HOST:PORT), or shm://NAME for the learner on
+    /// this host serving shared memory as NAME (its server.shm_name).
     #[arg(
         long,
         value_name = "URL",
@@ -74,8 +76,9 @@ struct RunArgs {
     #[arg(long, default_value_t = 1)]
     torch_threads: i32,
     /// Give up (exit with an error) once the learner has been unreachable for this many
-    /// seconds, at start or after losing it; 0 = retry for ever. Meanwhile the actor retries
-    /// with exponential back-off and jitter.
+    /// seconds, at start or after losing it; 0 = retry for ever. Meanwhile a gRPC actor
+    /// retries with exponential back-off and jitter; a shared-memory actor waits this long for
+    /// the learner to appear and exits when it vanishes.
     #[arg(long, value_name = "SECONDS", default_value_t = 120.0)]
     connect_timeout: f64,
     /// First wait between connection attempts; it doubles per failed attempt up to
@@ -86,7 +89,7 @@ struct RunArgs {
     #[arg(long, value_name = "SECONDS", default_value_t = 5.0)]
     retry_max_delay: f64,
     /// File holding the learner's shared token (or set JUNCTION_AUTH_TOKEN); sent with every
-    /// RPC.
+    /// RPC (gRPC only: shared memory is local to the host).
     #[arg(long, value_name = "FILE")]
     auth_token_file: Option<PathBuf>,
     /// PEM CA bundle to verify the learner's certificate (https:// URLs; default: the system's
@@ -102,7 +105,7 @@ struct RunArgs {
     /// Name to verify the learner's certificate against [default: the URL's host].
     #[arg(long, value_name = "NAME")]
     tls_domain: Option<String>,
-    /// Largest gRPC message sent or accepted, in bytes.
+    /// Largest gRPC message sent or accepted, in bytes (gRPC only).
     #[arg(long, default_value_t = 64 << 20)]
     max_message_bytes: usize,
     /// Name shown in the learner's logs [default: <hostname>/<pid>].
@@ -368,6 +371,12 @@ fn seconds(value: f64, flag: &str) -> anyhow::Result<Duration> {
         .map_err(|_| anyhow::anyhow!("{flag} {value} is not a number of seconds"))
 }
 
+/// How this actor reaches its learner (`--learner`).
+enum Transport {
+    Shm(String),
+    Grpc(grpc::GrpcOptions),
+}
+
 fn run_actor(args: RunArgs) -> anyhow::Result<()> {
     tch::set_num_threads(args.torch_threads.max(1));
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -396,8 +405,34 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
             None => None,
         };
         let hostname = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
-        let options = grpc::ActorOptions {
-            learner: args.learner,
+        let transport = match args.learner.strip_prefix("shm://") {
+            Some(name) => {
+                if args.tls_ca.is_some()
+                    || args.tls_cert.is_some()
+                    || args.tls_domain.is_some()
+                    || args.auth_token_file.is_some()
+                {
+                    anyhow::bail!(
+                        "--tls-* and --auth-token-file secure gRPC; shm://NAME is local to this host and takes neither"
+                    );
+                }
+                Transport::Shm(name.to_string())
+            }
+            None => Transport::Grpc(grpc::GrpcOptions {
+                learner: args.learner.clone(),
+                retry_initial: seconds(args.retry_initial_delay, "--retry-initial-delay")?,
+                retry_max: seconds(args.retry_max_delay, "--retry-max-delay")?,
+                max_message_bytes: args.max_message_bytes,
+                tls: grpc::TlsOptions {
+                    ca: args.tls_ca,
+                    cert: args.tls_cert,
+                    key: args.tls_key,
+                    domain: args.tls_domain,
+                },
+                token: Token::load(args.auth_token_file.as_deref())?,
+            }),
+        };
+        let options = ActorOptions {
             name: args
                 .name
                 .unwrap_or_else(|| format!("{}/{}", hostname.trim(), std::process::id())),
@@ -406,26 +441,22 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
             give_up_after: (args.connect_timeout > 0.0)
                 .then(|| seconds(args.connect_timeout, "--connect-timeout"))
                 .transpose()?,
-            retry_initial: seconds(args.retry_initial_delay, "--retry-initial-delay")?,
-            retry_max: seconds(args.retry_max_delay, "--retry-max-delay")?,
-            max_message_bytes: args.max_message_bytes,
-            tls: grpc::TlsOptions {
-                ca: args.tls_ca,
-                cert: args.tls_cert,
-                key: args.tls_key,
-                domain: args.tls_domain,
-            },
-            token: Token::load(args.auth_token_file.as_deref())?,
         };
         let span = tracing::info_span!(
             "actor",
             id = tracing::field::Empty,
             scenario = tracing::field::Empty
         );
+        let transport = async {
+            match transport {
+                Transport::Shm(name) => shm::run(&name, options, metrics).await,
+                Transport::Grpc(grpc_options) => grpc::run(options, grpc_options, metrics).await,
+            }
+        };
         let result = tokio::select! {
-            result = grpc::run(options, metrics).instrument(span) => result,
-            _ = tokio::signal::ctrl_c() => {
-                tracing::info!("interrupted");
+            result = transport.instrument(span) => result,
+            signal = stop_signal() => {
+                tracing::info!(signal, "interrupted");
                 Ok(())
             }
         };
@@ -435,4 +466,20 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
         }
         result
     })
+}
+
+/// Ctrl-C or SIGTERM (what `docker stop` and a supervising learner send).
+async fn stop_signal() -> &'static str {
+    let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(term) => term,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot listen for SIGTERM");
+            let _ = tokio::signal::ctrl_c().await;
+            return "SIGINT";
+        }
+    };
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => "SIGINT",
+        _ = term.recv() => "SIGTERM",
+    }
 }

@@ -13,6 +13,7 @@ pub struct ActorMetrics {
     pub policy_switches: IntCounter,
     pub inference_seconds: Counter,
     pub simulation_seconds: Counter,
+    pub transport_seconds: Counter,
     pub scene_agents: IntGauge,
     pub connected: IntGauge,
     pub reconnects: IntCounter,
@@ -67,6 +68,10 @@ impl ActorMetrics {
                 names::ACTOR_SIMULATION_SECONDS,
                 "Time spent stepping scenes.",
             )?,
+            transport_seconds: seconds(
+                names::ACTOR_TRANSPORT_SECONDS,
+                "CPU time spent moving fragments and weights (encoding, shared memory or gRPC).",
+            )?,
             scene_agents,
             connected,
             reconnects: counter(
@@ -79,5 +84,47 @@ impl ActorMetrics {
             )?,
             registry,
         })
+    }
+}
+
+/// CPU time the calling thread has used so far, in seconds (0 if the clock is unavailable).
+pub fn thread_cpu_seconds() -> f64 {
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec, which we own.
+    if unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut now) } != 0 {
+        return 0.0;
+    }
+    now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9
+}
+
+/// Charges all the CPU time of the calling thread to `counter`, for a thread that does one job
+/// only (a transport thread): call [`ThreadCpu::record`] as it goes; dropping records the rest.
+pub struct ThreadCpu {
+    counter: Counter,
+    recorded: f64,
+}
+
+impl ThreadCpu {
+    /// Counts from the thread's start, so set-up is included.
+    pub fn new(counter: &Counter) -> Self {
+        ThreadCpu {
+            counter: counter.clone(),
+            recorded: 0.0,
+        }
+    }
+
+    pub fn record(&mut self) {
+        let now = thread_cpu_seconds();
+        self.counter.inc_by((now - self.recorded).max(0.0));
+        self.recorded = now;
+    }
+}
+
+impl Drop for ThreadCpu {
+    fn drop(&mut self) {
+        self.record();
     }
 }

@@ -473,6 +473,9 @@ pub struct ServerSection {
     pub tls_key: String,
     pub tls_client_ca: String,
     pub auth_token_file: String,
+    /// Base name of the shared-memory services; empty: shared memory off.
+    pub shm_name: String,
+    pub shm_max_actors: usize,
 }
 
 /// Ceilings that keep a configuration (or a scenario a learner sends to actors) from asking
@@ -728,6 +731,15 @@ impl ServerSection {
                 "server.tls_client_ca (client certificates) needs server.tls_cert and server.tls_key"
                     .to_string(),
             );
+        }
+        if !self.shm_name.is_empty() && !crate::shm::is_valid_name(&self.shm_name) {
+            problems.push(format!(
+                "server.shm_name {:?} may only hold letters, digits, '-', '_' and '.' (at most 200), or be \"\" for no shared memory",
+                self.shm_name
+            ));
+        }
+        if !(1..=1024).contains(&self.shm_max_actors) {
+            problems.push("server.shm_max_actors must be in 1..=1024".to_string());
         }
         problems
     }

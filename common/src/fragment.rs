@@ -203,6 +203,48 @@ impl RolloutFragment {
         self.alive[last] && !self.dones[last]
     }
 
+    /// Dimensions within bounds (and equal to `expected_dims`, if given) and every array as
+    /// long as they call for: what an encoder needs before it sizes a buffer.
+    pub fn check_shape(&self, expected_dims: Option<(usize, usize)>) -> Result<(), FragmentError> {
+        Self::check_dims(
+            (self.steps, self.agents, self.obs_dim, self.action_dim),
+            expected_dims,
+        )?;
+        self.check_lengths()
+    }
+
+    /// (steps, agents, obs_dim, action_dim) within the MAX_* bounds, and the last two equal
+    /// to `expected_dims` if given: checked before anything is sized from them.
+    pub fn check_dims(
+        (steps, agents, obs_dim, action_dim): (usize, usize, usize, usize),
+        expected_dims: Option<(usize, usize)>,
+    ) -> Result<(), FragmentError> {
+        let shape = |msg: String| Err(FragmentError::Shape(msg));
+        if steps == 0 || steps > MAX_STEPS {
+            return shape(format!("steps = {} (must be 1..={MAX_STEPS})", steps));
+        }
+        if agents == 0 || agents > MAX_AGENTS {
+            return shape(format!("agents = {} (must be 1..={MAX_AGENTS})", agents));
+        }
+        if obs_dim == 0 || obs_dim > MAX_OBS_DIM {
+            return shape(format!("obs_dim = {} (must be 1..={MAX_OBS_DIM})", obs_dim));
+        }
+        if action_dim == 0 || action_dim > MAX_ACTION_DIM {
+            return shape(format!(
+                "action_dim = {} (must be 1..={MAX_ACTION_DIM})",
+                action_dim
+            ));
+        }
+        if let Some((want_obs, want_action)) = expected_dims
+            && (obs_dim, action_dim) != (want_obs, want_action)
+        {
+            return shape(format!(
+                "obs_dim × action_dim = {obs_dim} × {action_dim}, the run expects {want_obs} × {want_action}"
+            ));
+        }
+        Ok(())
+    }
+
     /// Checks everything a learner relies on; `expected_dims` pins (obs_dim, action_dim).
     pub fn validate(&self, expected_dims: Option<(usize, usize)>) -> Result<(), FragmentError> {
         let shape = |msg: String| Err(FragmentError::Shape(msg));
@@ -214,65 +256,9 @@ impl RolloutFragment {
                 ));
             }
         }
-        if self.steps == 0 || self.steps > MAX_STEPS {
-            return shape(format!("steps = {} (must be 1..={MAX_STEPS})", self.steps));
-        }
-        if self.agents == 0 || self.agents > MAX_AGENTS {
-            return shape(format!(
-                "agents = {} (must be 1..={MAX_AGENTS})",
-                self.agents
-            ));
-        }
-        if self.obs_dim == 0 || self.obs_dim > MAX_OBS_DIM {
-            return shape(format!(
-                "obs_dim = {} (must be 1..={MAX_OBS_DIM})",
-                self.obs_dim
-            ));
-        }
-        if self.action_dim == 0 || self.action_dim > MAX_ACTION_DIM {
-            return shape(format!(
-                "action_dim = {} (must be 1..={MAX_ACTION_DIM})",
-                self.action_dim
-            ));
-        }
-        if let Some((obs_dim, action_dim)) = expected_dims {
-            if (self.obs_dim, self.action_dim) != (obs_dim, action_dim) {
-                return shape(format!(
-                    "obs_dim × action_dim = {} × {}, the run expects {obs_dim} × {action_dim}",
-                    self.obs_dim, self.action_dim
-                ));
-            }
-        }
-        // Bounded by the MAX_* constants above, so these products cannot overflow.
+        self.check_shape(expected_dims)?;
+        // Bounded by the MAX_* constants, so these products cannot overflow.
         let cells = self.steps * self.agents;
-        let lengths: [(&str, usize, usize); 10] = [
-            ("obs", self.obs.len(), cells * self.obs_dim),
-            ("actions", self.actions.len(), cells * self.action_dim),
-            ("log_probs", self.log_probs.len(), cells),
-            ("rewards", self.rewards.len(), cells),
-            ("costs", self.costs.len(), cells),
-            ("dones", self.dones.len(), cells),
-            ("alive", self.alive.len(), cells),
-            (
-                "bootstrap_obs",
-                self.bootstrap_obs.len(),
-                self.agents * self.obs_dim,
-            ),
-            ("neighbour_offsets", self.neighbour_offsets.len(), cells + 1),
-            (
-                "lcf_features",
-                self.lcf_features.len(),
-                cells * lcf::FEATURES,
-            ),
-        ];
-        for (field, got, want) in lengths {
-            if got != want {
-                return shape(format!(
-                    "{field} has {got} values, expected {want} for {} steps × {} agents",
-                    self.steps, self.agents
-                ));
-            }
-        }
         let floats: [(&'static str, &[f32]); 7] = [
             ("obs", &self.obs),
             ("actions", &self.actions),
@@ -283,7 +269,7 @@ impl RolloutFragment {
             ("lcf_features", &self.lcf_features),
         ];
         for (field, values) in floats {
-            if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+            if let Some(index) = first_non_finite(values) {
                 return Err(FragmentError::NonFinite { field, index });
             }
         }
@@ -355,6 +341,41 @@ impl RolloutFragment {
                 if values.iter().any(|v| !v.is_finite()) {
                     return Err(FragmentError::NonFinite { field, index });
                 }
+            }
+        }
+        Ok(())
+    }
+
+    /// Every array holds as many values as the dimensions call for (which `check_shape` has
+    /// bounded, so the products cannot overflow).
+    fn check_lengths(&self) -> Result<(), FragmentError> {
+        let cells = self.steps * self.agents;
+        let lengths: [(&str, usize, usize); 10] = [
+            ("obs", self.obs.len(), cells * self.obs_dim),
+            ("actions", self.actions.len(), cells * self.action_dim),
+            ("log_probs", self.log_probs.len(), cells),
+            ("rewards", self.rewards.len(), cells),
+            ("costs", self.costs.len(), cells),
+            ("dones", self.dones.len(), cells),
+            ("alive", self.alive.len(), cells),
+            (
+                "bootstrap_obs",
+                self.bootstrap_obs.len(),
+                self.agents * self.obs_dim,
+            ),
+            ("neighbour_offsets", self.neighbour_offsets.len(), cells + 1),
+            (
+                "lcf_features",
+                self.lcf_features.len(),
+                cells * lcf::FEATURES,
+            ),
+        ];
+        for (field, got, want) in lengths {
+            if got != want {
+                return Err(FragmentError::Shape(format!(
+                    "{field} has {got} values, expected {want} for {} steps × {} agents",
+                    self.steps, self.agents
+                )));
             }
         }
         Ok(())
@@ -437,7 +458,20 @@ impl RolloutFragment {
     }
 }
 
-fn flags(field: &'static str, bytes: &[u8]) -> Result<Vec<bool>, FragmentError> {
+/// Index of the first NaN or infinity. The common all-finite case is checked branch-free,
+/// which vectorises (the fragment's arrays are megabytes; validation runs on every one).
+fn first_non_finite(values: &[f32]) -> Option<usize> {
+    let all_finite = values
+        .chunks(4096)
+        .all(|chunk| chunk.iter().fold(true, |ok, v| ok & v.is_finite()));
+    if all_finite {
+        None
+    } else {
+        values.iter().position(|v| !v.is_finite())
+    }
+}
+
+pub(crate) fn flags(field: &'static str, bytes: &[u8]) -> Result<Vec<bool>, FragmentError> {
     bytes
         .iter()
         .enumerate()

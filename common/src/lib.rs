@@ -8,13 +8,23 @@ pub mod confidence;
 pub mod config;
 pub mod evaluation;
 pub mod fragment;
+pub mod grpc_codec;
 pub mod lcf;
 pub mod policy;
 pub mod q_policy;
 pub mod scenarios;
+pub mod shm;
+pub mod shm_layout;
 pub mod spec;
 pub mod telemetry;
 pub mod weights;
+
+/// HTTP/2 flow-control windows of gRPC, on both sides: with the 64 KiB default a
+/// multi-megabyte fragment waits for dozens of window updates (`learner bench-transport`).
+pub const GRPC_STREAM_WINDOW_BYTES: u32 = 8 << 20;
+pub const GRPC_CONNECTION_WINDOW_BYTES: u32 = 16 << 20;
+/// Largest HTTP/2 frame a learner accepts: fewer, larger frames per fragment.
+pub const GRPC_MAX_FRAME_BYTES: u32 = 1 << 20;
 
 /// Code generated from `proto/junction.proto` (package `junction.v1`).
 pub mod proto {

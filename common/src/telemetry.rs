@@ -59,6 +59,7 @@ pub mod names {
     pub const LEARNER_Q_MEAN: &str = "junction_learner_q_value_mean";
     pub const LEARNER_EPSILON: &str = "junction_learner_exploration_epsilon";
     pub const LEARNER_REPLAY_TRANSITIONS: &str = "junction_learner_replay_transitions";
+    pub const LEARNER_LOCAL_ACTOR_RESTARTS: &str = "junction_learner_local_actor_restarts_total";
 
     pub const ACTOR_ENV_STEPS: &str = "junction_actor_env_steps_total";
     pub const ACTOR_AGENT_STEPS: &str = "junction_actor_agent_steps_total";
@@ -71,6 +72,7 @@ pub mod names {
     pub const ACTOR_CONNECTED: &str = "junction_actor_connected";
     pub const ACTOR_RECONNECTS: &str = "junction_actor_reconnects_total";
     pub const ACTOR_FRAGMENTS_UNCONFIRMED: &str = "junction_actor_fragments_unconfirmed_total";
+    pub const ACTOR_TRANSPORT_SECONDS: &str = "junction_actor_transport_seconds_total";
 }
 
 /// `--log-format` of both binaries (parsed by clap through `FromStr`).

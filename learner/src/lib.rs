@@ -4,11 +4,15 @@
 pub mod algo;
 pub mod bench;
 pub mod checkpoint;
+pub mod ingest;
+pub mod local;
 pub mod metrics;
 pub mod optim;
 pub mod progress;
 pub mod report;
 pub mod security;
 pub mod server;
+pub mod shm;
 pub mod stats;
 pub mod trainer;
+pub mod transport_bench;

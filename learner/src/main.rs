@@ -17,13 +17,20 @@ use junction_common::proto::learner_server::LearnerServer;
 use junction_common::scenarios;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
+use junction_common::{
+    GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
+};
 use junction_learner::algo;
 use junction_learner::checkpoint::Checkpointer;
+use junction_learner::ingest::Ingest;
+use junction_learner::local::{ActorCommand, LocalActors};
 use junction_learner::metrics::LearnerMetrics;
 use junction_learner::report::{self, ReportOptions};
 use junction_learner::security::{self, TokenCheck};
 use junction_learner::server::{LearnerService, Shared};
+use junction_learner::shm::ShmServer;
 use junction_learner::trainer::{Progress, Trainer, weights_message};
+use junction_learner::transport_bench;
 
 #[derive(Parser)]
 #[command(
@@ -41,7 +48,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Serve actors: take rollouts over gRPC, train, broadcast weights, expose /metrics.
+    /// Serve actors: take rollouts over gRPC and shared memory, train, broadcast weights,
+    /// expose /metrics; with --local-actors, start and supervise the actors too.
     Serve(ServeArgs),
     /// Print the effective configuration as TOML (or, with --defaults, the annotated defaults).
     Config(ConfigArgs),
@@ -56,6 +64,10 @@ enum Command {
     /// side, methods overlaid, range over seeds shaded). Writes OUT/report.md,
     /// OUT/summary.json and OUT/figures/.
     Report(ReportArgs),
+    /// Time fragment throughput of each transport on this host through the learner's real
+    /// receiving side (decode, validation, ingest queue), with fragments of the run's shape
+    /// (30 agents × 200 steps × 91 observations by default); one JSON line per transport.
+    BenchTransport(BenchTransportArgs),
 }
 
 #[derive(Args)]
@@ -79,6 +91,18 @@ struct ReportArgs {
     /// Episodes a training window needs before its success rate counts as reached.
     #[arg(long, default_value_t = 100)]
     min_window_episodes: usize,
+}
+
+#[derive(Args)]
+struct BenchTransportArgs {
+    #[command(flatten)]
+    source: ConfigSource,
+    /// Which transport to time: shm, grpc or both.
+    #[arg(long, default_value = "both", value_parser = ["shm", "grpc", "both"])]
+    transport: String,
+    /// Fragments sent through each transport.
+    #[arg(long, default_value_t = 300)]
+    fragments: usize,
 }
 
 #[derive(Args)]
@@ -160,6 +184,22 @@ struct ServeArgs {
     /// Training budget in seconds, 0 = until stopped [config: run.max_seconds, default 300].
     #[arg(long, value_name = "SECONDS")]
     max_seconds: Option<f64>,
+    /// Base name of the shared-memory services, "" for none [config: server.shm_name,
+    /// default junction]; actors on this host join with `actor --learner shm://NAME`.
+    #[arg(long, value_name = "NAME")]
+    shm_name: Option<String>,
+    /// Start N actor processes (the `actor` binary next to this one) connected over shared
+    /// memory, restart any that dies (with back-off), and stop them when the learner exits:
+    /// the one-command local mode.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    local_actors: usize,
+    /// Scenes each local actor simulates (`actor --scenes`).
+    #[arg(long, value_name = "S", default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..=256))]
+    local_actor_scenes: u32,
+    /// Local actor i (from 1) serves Prometheus /metrics on 127.0.0.1:(PORT + i - 1).
+    #[arg(long, value_name = "PORT")]
+    local_actor_metrics_port: Option<u16>,
 }
 
 #[derive(Args)]
@@ -202,6 +242,7 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::BenchTransport(args) => bench_transport(args),
         Command::Serve(args) => {
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)
@@ -236,6 +277,20 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     )
     .context("timing the update")?;
     println!("{}", serde_json::to_string(&report)?);
+    Ok(())
+}
+
+fn bench_transport(args: BenchTransportArgs) -> anyhow::Result<()> {
+    let config = args.source.load(None, &[])?;
+    let count = args.fragments.max(1);
+    if args.transport != "grpc" {
+        let report = transport_bench::shm(&config, count).context("timing shared memory")?;
+        println!("{}", serde_json::to_string(&report)?);
+    }
+    if args.transport != "shm" {
+        let report = transport_bench::grpc(&config, count).context("timing gRPC")?;
+        println!("{}", serde_json::to_string(&report)?);
+    }
     Ok(())
 }
 
@@ -301,11 +356,28 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             "run.max_seconds",
             args.max_seconds.map(|s| format!("{s:?}")),
         ),
+        (
+            "server.shm_name",
+            args.shm_name.as_ref().map(|n| format!("{n:?}")),
+        ),
     ]
     .into_iter()
     .filter_map(|(key, value)| value.map(|v| format!("{key}={v}")))
     .collect();
     let config = args.source.load(fallback, &flags)?;
+    if let Some(port) = args.local_actor_metrics_port
+        && usize::from(port) + args.local_actors > usize::from(u16::MAX) + 1
+    {
+        bail!(
+            "--local-actor-metrics-port {port}: {} actors need ports up to 65535",
+            args.local_actors
+        );
+    }
+    if args.local_actors > 0 && config.server.shm_name.is_empty() {
+        bail!(
+            "--local-actors connects the actors over shared memory: server.shm_name must not be empty"
+        );
+    }
 
     std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
     write_atomically(&saved_config, config.to_toml().as_bytes())?;
@@ -338,11 +410,13 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let registry = metrics.registry.clone();
     let initial = weights_message(algorithm.as_ref(), progress.version, stage.agents, false)?;
     let refused = metrics.requests_refused.clone();
+    let restarts = metrics.local_actor_restarts.clone();
     let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
     shared.continue_actor_ids(actors_registered);
     let tls = security::server_tls(&config.server).context("[server] TLS settings")?;
     let token = security::server_token(&config.server).context("[server] auth token")?;
     let (queue_tx, queue_rx) = mpsc::channel(config.learner.ingest_queue_fragments);
+    let ingest = Ingest::new(Arc::clone(&shared), queue_tx);
 
     let grpc_listener = bind(&config.server.addr, "gRPC").await?;
     let metrics_listener = bind(&config.server.metrics_addr, "metrics").await?;
@@ -350,10 +424,21 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let metrics_addr = metrics_listener.local_addr()?;
     // Clears what an interrupted checkpoint write left behind before anyone is told we serve.
     let checkpointer = Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?;
-    write_endpoints(&run_dir, grpc_addr, metrics_addr)?;
+    let shm_name = &config.server.shm_name;
+    let shm = if shm_name.is_empty() {
+        None
+    } else {
+        Some(ShmServer::start(
+            ingest.clone(),
+            shm_name,
+            config.server.shm_max_actors,
+        )?)
+    };
+    write_endpoints(&run_dir, grpc_addr, metrics_addr, shm_name)?;
     tracing::info!(
         grpc = %grpc_addr,
         metrics = %metrics_addr,
+        shm = %shm_name,
         run_dir = %run_dir.display(),
         device = ?device,
         scenario = %config.scenario.name,
@@ -367,6 +452,16 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             "the gRPC port is reachable beyond this host without TLS and a token; set server.tls_cert/tls_key and server.auth_token_file (or JUNCTION_AUTH_TOKEN) unless the network is trusted"
         );
     }
+    let local_actors = if args.local_actors > 0 {
+        let command = ActorCommand::beside_this_executable(
+            shm_name,
+            args.local_actor_scenes,
+            args.local_actor_metrics_port,
+        )?;
+        Some(LocalActors::start(args.local_actors, command, restarts)?)
+    } else {
+        None
+    };
 
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
     let wait_for_shutdown = |mut rx: watch::Receiver<bool>| async move {
@@ -374,12 +469,15 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     };
     let server_config = &config.server;
     let max_bytes = server_config.max_message_bytes;
-    let service = LearnerServer::new(LearnerService::new(Arc::clone(&shared), queue_tx))
+    let service = LearnerServer::new(LearnerService::new(ingest))
         .max_decoding_message_size(max_bytes)
         .max_encoding_message_size(max_bytes);
     let service = InterceptedService::new(service, TokenCheck::new(token, refused));
     let keepalive = Duration::from_secs_f64(server_config.keepalive_interval_s);
     let mut builder = tonic::transport::Server::builder()
+        .initial_stream_window_size(GRPC_STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(GRPC_CONNECTION_WINDOW_BYTES)
+        .max_frame_size(GRPC_MAX_FRAME_BYTES)
         .max_concurrent_streams(Some(server_config.max_concurrent_streams))
         .http2_keepalive_interval(Some(keepalive))
         .http2_keepalive_timeout(Some(Duration::from_secs_f64(
@@ -418,8 +516,24 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .await
         .context("training thread panicked")?;
 
-    // Actors have been told the run is over; give their streams a moment to close, then stop.
+    // Actors have been told the run is over (or, after an error, will be stopped): local ones
+    // get a moment to exit by themselves, remote streams a moment to close, then all stops.
+    if let Some(local) = local_actors {
+        let grace = if outcome.is_ok() {
+            LOCAL_ACTOR_GRACE
+        } else {
+            Duration::ZERO
+        };
+        tokio::task::spawn_blocking(move || local.finish(grace))
+            .await
+            .context("stopping the local actors")?;
+    }
     tokio::time::sleep(Duration::from_millis(500)).await;
+    if let Some(shm) = shm {
+        tokio::task::spawn_blocking(move || shm.stop())
+            .await
+            .context("stopping the shared-memory server")?;
+    }
     let _ = shutdown_tx.send(true);
     if tokio::time::timeout(Duration::from_secs(10), grpc)
         .await
@@ -542,8 +656,21 @@ async fn stop_on_signal(stop: Arc<AtomicBool>) {
     }
 }
 
-fn write_endpoints(run_dir: &Path, grpc: SocketAddr, metrics: SocketAddr) -> anyhow::Result<()> {
-    let body = serde_json::json!({ "grpc": grpc.to_string(), "metrics": metrics.to_string(), "pid": std::process::id() });
+/// How long local actors get to exit by themselves once they have been told the run is over.
+const LOCAL_ACTOR_GRACE: Duration = Duration::from_secs(10);
+
+fn write_endpoints(
+    run_dir: &Path,
+    grpc: SocketAddr,
+    metrics: SocketAddr,
+    shm: &str,
+) -> anyhow::Result<()> {
+    let body = serde_json::json!({
+        "grpc": grpc.to_string(),
+        "metrics": metrics.to_string(),
+        "shm": shm,
+        "pid": std::process::id(),
+    });
     write_atomically(&run_dir.join("endpoints.json"), body.to_string().as_bytes())
 }
 

@@ -31,6 +31,7 @@ pub const DROP_REASONS: [&str; 4] = [DROP_STALE, DROP_SHUTDOWN, DROP_UPDATE_FAIL
 pub const REFUSED_UNAUTHENTICATED: &str = "unauthenticated";
 pub const REFUSED_STREAM_LIMIT: &str = "stream_limit";
 pub const TRANSPORT_GRPC: &str = "grpc";
+pub const TRANSPORT_SHM: &str = "shm";
 
 pub struct LearnerMetrics {
     pub registry: Registry,
@@ -81,6 +82,7 @@ pub struct LearnerMetrics {
     q_mean: Gauge,
     epsilon: Gauge,
     replay_transitions: IntGauge,
+    pub local_actor_restarts: IntCounter,
 }
 
 impl LearnerMetrics {
@@ -314,6 +316,10 @@ impl LearnerMetrics {
                 names::LEARNER_REPLAY_TRANSITIONS,
                 "DQN: agent transitions held in the replay buffer (0 for PPO).",
             )?,
+            local_actor_restarts: counter(
+                names::LEARNER_LOCAL_ACTOR_RESTARTS,
+                "Local actors (serve --local-actors) restarted after they exited.",
+            )?,
             registry,
         })
     }
@@ -334,7 +340,9 @@ impl LearnerMetrics {
         for reason in [REFUSED_UNAUTHENTICATED, REFUSED_STREAM_LIMIT] {
             self.requests_refused.with_label_values(&[reason]);
         }
-        self.transport_bytes.with_label_values(&[TRANSPORT_GRPC]);
+        for transport in [TRANSPORT_GRPC, TRANSPORT_SHM] {
+            self.transport_bytes.with_label_values(&[transport]);
+        }
         for outcome in Outcome::ALL {
             self.episodes
                 .with_label_values(&[scenario, outcome.label()]);

@@ -1,5 +1,5 @@
-//! The gRPC face of the learner: actor registration, rollout ingest (validate → bounded
-//! queue), weight broadcast and status.
+//! The state the transports share with the training loop, and the gRPC face of the learner:
+//! actor registration, rollout ingest (through [`crate::ingest`]), weight broadcast and status.
 
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -11,13 +11,12 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 use junction_common::config::RunConfig;
-use junction_common::fragment::{FragmentError, MAX_NAME_BYTES, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::{MAX_NAME_BYTES, PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_server::Learner};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
-use crate::metrics::{
-    LearnerMetrics, REFUSED_STREAM_LIMIT, REJECT_DECODE, REJECT_SCENARIO, TRANSPORT_GRPC,
-};
+use crate::ingest::{Ingest, Rejection};
+use crate::metrics::{LearnerMetrics, REFUSED_STREAM_LIMIT, REJECT_DECODE, TRANSPORT_GRPC};
 
 /// State the gRPC handlers share with the training loop.
 pub struct Shared {
@@ -89,12 +88,36 @@ impl Shared {
     }
 
     /// Values per observation row in fragments: what the policy takes.
-    fn obs_dim(&self) -> usize {
+    pub fn obs_dim(&self) -> usize {
         self.config.policy_obs_dim()
     }
 
+    /// Registers an actor whatever its transport: assigns its id (unique across transports)
+    /// and answers with the run configuration.
+    pub fn register(
+        &self,
+        hello: &proto::RegisterRequest,
+        transport: &str,
+    ) -> Result<proto::RegisterReply, Refusal> {
+        check_version(hello.protocol_version)?;
+        check_name("actor_name", &hello.actor_name)?;
+        let actor_id = format!("actor-{}", self.next_actor.fetch_add(1, Ordering::Relaxed));
+        tracing::info!(actor = %actor_id, name = %hello.actor_name, scenes = hello.scenes, transport, "actor registered");
+        let config = &self.config;
+        Ok(proto::RegisterReply {
+            protocol_version: PROTOCOL_VERSION,
+            actor_id,
+            scenario_toml: config.scenario.to_toml(),
+            fragment_length: config.rollout.fragment_length as u32,
+            obs_dim: self.obs_dim() as u32,
+            action_dim: ACTION_DIM as u32,
+            obs_layout_version: OBS_LAYOUT_VERSION,
+            run_seed: config.run.seed,
+        })
+    }
+
     /// Counts a refused fragment and logs its cause once at warn level.
-    fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
+    pub(crate) fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
         self.metrics
             .fragments_rejected
             .with_label_values(&[reason])
@@ -116,36 +139,55 @@ impl Shared {
     }
 }
 
-pub struct LearnerService {
-    shared: Arc<Shared>,
-    queue: mpsc::Sender<RolloutFragment>,
+/// Why a request from an actor was refused, whatever its transport.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Refusal {
+    #[error("protocol version {0} is not supported (this learner speaks {PROTOCOL_VERSION})")]
+    Version(u32),
+    #[error("{field} is {len} bytes long (at most {MAX_NAME_BYTES})")]
+    NameTooLong { field: &'static str, len: usize },
 }
 
-impl LearnerService {
-    pub fn new(shared: Arc<Shared>, queue: mpsc::Sender<RolloutFragment>) -> Self {
-        LearnerService { shared, queue }
+impl From<Refusal> for Status {
+    fn from(refusal: Refusal) -> Self {
+        match refusal {
+            Refusal::Version(_) => Status::failed_precondition(refusal.to_string()),
+            Refusal::NameTooLong { .. } => Status::invalid_argument(refusal.to_string()),
+        }
     }
 }
 
-fn check_version(got: u32) -> Result<(), Status> {
+fn check_version(got: u32) -> Result<(), Refusal> {
     if got == PROTOCOL_VERSION {
         Ok(())
     } else {
-        Err(Status::failed_precondition(format!(
-            "protocol version {got} is not supported (this learner speaks {PROTOCOL_VERSION})"
-        )))
+        Err(Refusal::Version(got))
     }
 }
 
 /// Names and ids from peers end up in logs: bounded, or refused.
-fn check_name(field: &str, value: &str) -> Result<(), Status> {
+fn check_name(field: &'static str, value: &str) -> Result<(), Refusal> {
     if value.len() > MAX_NAME_BYTES {
-        return Err(Status::invalid_argument(format!(
-            "{field} is {} bytes long (at most {MAX_NAME_BYTES})",
-            value.len()
-        )));
+        return Err(Refusal::NameTooLong {
+            field,
+            len: value.len(),
+        });
     }
     Ok(())
+}
+
+pub struct LearnerService {
+    shared: Arc<Shared>,
+    ingest: Ingest,
+}
+
+impl LearnerService {
+    pub fn new(ingest: Ingest) -> Self {
+        LearnerService {
+            shared: Arc::clone(ingest.shared()),
+            ingest,
+        }
+    }
 }
 
 /// Keeps `connected_actors` right however a stream ends.
@@ -171,24 +213,7 @@ impl Learner for LearnerService {
         request: Request<proto::RegisterRequest>,
     ) -> Result<Response<proto::RegisterReply>, Status> {
         let hello = request.into_inner();
-        check_version(hello.protocol_version)?;
-        check_name("actor_name", &hello.actor_name)?;
-        let actor_id = format!(
-            "actor-{}",
-            self.shared.next_actor.fetch_add(1, Ordering::Relaxed)
-        );
-        tracing::info!(actor = %actor_id, name = %hello.actor_name, scenes = hello.scenes, "actor registered");
-        let config = &self.shared.config;
-        Ok(Response::new(proto::RegisterReply {
-            protocol_version: PROTOCOL_VERSION,
-            actor_id,
-            scenario_toml: config.scenario.to_toml(),
-            fragment_length: config.rollout.fragment_length as u32,
-            obs_dim: self.shared.obs_dim() as u32,
-            action_dim: ACTION_DIM as u32,
-            obs_layout_version: OBS_LAYOUT_VERSION,
-            run_seed: config.run.seed,
-        }))
+        Ok(Response::new(self.shared.register(&hello, TRANSPORT_GRPC)?))
     }
 
     async fn push_rollouts(
@@ -200,7 +225,7 @@ impl Learner for LearnerService {
         let _connected = ConnectedGuard::new(&shared.metrics.connected_actors);
         let mut stream = request.into_inner();
         let mut summary = proto::PushSummary::default();
-        let dims = Some((shared.obs_dim(), ACTION_DIM));
+        let dims = Some(self.ingest.dims());
         loop {
             let message = match stream.message().await {
                 Ok(Some(message)) => message,
@@ -217,43 +242,28 @@ impl Learner for LearnerService {
                     return Err(status);
                 }
             };
-            shared
-                .metrics
-                .transport_bytes
-                .with_label_values(&[TRANSPORT_GRPC])
-                .inc_by(message.encoded_len() as u64);
+            let bytes = message.encoded_len();
             let actor = message.actor_id.clone();
-            let fragment = match RolloutFragment::from_proto(message, dims) {
-                Ok(f) if f.scenario != shared.config.scenario.name => {
-                    let detail = format!(
-                        "fragment is from scenario {:?}, this run trains {:?}",
-                        f.scenario, shared.config.scenario.name
-                    );
-                    shared.reject(REJECT_SCENARIO, &actor, &detail);
-                    return Err(Status::invalid_argument(format!(
-                        "fragment rejected: {detail}"
-                    )));
-                }
-                Ok(f) => f,
-                Err(e) => {
-                    shared.reject(e.reason(), &actor, &e.to_string());
-                    return Err(match e {
-                        FragmentError::Version { .. } => {
-                            Status::failed_precondition(format!("fragment rejected: {e}"))
-                        }
-                        _ => Status::invalid_argument(format!("fragment rejected: {e}")),
-                    });
-                }
-            };
-            let agent_steps = fragment.agent_steps() as u64;
+            let decoded = RolloutFragment::from_proto(message, dims).map_err(Rejection::from);
+            let fragment = self
+                .ingest
+                .admit(TRANSPORT_GRPC, bytes, &actor, decoded)
+                .map_err(|rejection| {
+                    let message = format!("fragment rejected: {}", rejection.detail);
+                    if rejection.reason == "version" {
+                        Status::failed_precondition(message)
+                    } else {
+                        Status::invalid_argument(message)
+                    }
+                })?;
             // A full queue parks this stream here, so the actor's sends stall (backpressure).
             // A fragment counts as accepted once queued: from then on it is trained on or
             // counted as dropped.
-            self.queue.send(fragment).await.map_err(|_| {
-                Status::unavailable("the learner has finished training and is shutting down")
-            })?;
-            shared.metrics.fragments.inc();
-            shared.metrics.agent_steps_accepted.inc_by(agent_steps);
+            let agent_steps = self
+                .ingest
+                .enqueue(fragment)
+                .await
+                .map_err(|closed| Status::unavailable(closed.to_string()))?;
             summary.accepted_fragments += 1;
             summary.accepted_agent_steps += agent_steps;
         }

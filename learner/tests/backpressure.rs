@@ -14,6 +14,7 @@ use junction_common::config::RunConfig;
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
+use junction_learner::ingest::Ingest;
 use junction_learner::metrics::LearnerMetrics;
 use junction_learner::server::{LearnerService, Shared};
 
@@ -63,7 +64,7 @@ async fn serve(queue: usize) -> (SocketAddr, Arc<Shared>, mpsc::Receiver<Rollout
         .await
         .expect("bind");
     let addr = listener.local_addr().expect("addr");
-    let service = LearnerServer::new(LearnerService::new(Arc::clone(&shared), tx))
+    let service = LearnerServer::new(LearnerService::new(Ingest::new(Arc::clone(&shared), tx)))
         .max_decoding_message_size(64 << 20);
     tokio::spawn(
         tonic::transport::Server::builder()

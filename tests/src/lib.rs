@@ -186,6 +186,8 @@ impl Drop for Process {
 pub struct Endpoints {
     pub grpc: String,
     pub metrics: String,
+    /// The shared-memory name it serves ("" for none).
+    pub shm: String,
 }
 
 /// `learner serve` flags for a small run that publishes versions within seconds: 8 agents,
@@ -227,6 +229,10 @@ pub fn start_learner_with_env(
     if !extra.contains(&"--resume") {
         args.extend(["--run-dir".to_string(), run_dir.display().to_string()]);
     }
+    // Tests run in parallel: each learner serves shared memory under a name of its own.
+    if !extra.contains(&"--shm-name") {
+        args.extend(["--shm-name".to_string(), unique_shm_name()]);
+    }
     args.extend(extra.iter().map(|s| s.to_string()));
     let mut learner = Process::start_with_env("learner", &bin("learner"), &args, log_dir, env);
     let endpoints_file = run_dir.join("endpoints.json");
@@ -238,6 +244,7 @@ pub fn start_learner_with_env(
                 let endpoints = Endpoints {
                     grpc: v["grpc"].as_str().expect("grpc address").to_string(),
                     metrics: v["metrics"].as_str().expect("metrics address").to_string(),
+                    shm: v["shm"].as_str().expect("shm name").to_string(),
                 };
                 return (learner, endpoints);
             }
@@ -255,6 +262,13 @@ pub fn start_learner_with_env(
         );
         std::thread::sleep(Duration::from_millis(50));
     }
+}
+
+/// A shared-memory name no other test (or test run) uses.
+pub fn unique_shm_name() -> String {
+    static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    format!("test-{}-{n}", std::process::id())
 }
 
 pub fn start_actor(endpoints: &Endpoints, log_dir: &Path, name: &str, extra: &[&str]) -> Process {
@@ -366,4 +380,33 @@ pub fn checkpoint_versions(run_dir: &Path) -> Vec<u64> {
         .unwrap_or_default();
     versions.sort_unstable();
     versions
+}
+
+/// Processes whose parent is `pid` (from /proc), e.g. a learner's local actors.
+pub fn children_of(pid: u32) -> Vec<u32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|&child| parent_of(child) == Some(pid))
+        .collect()
+}
+
+/// The parent of process `pid`, if it exists (field 4 of /proc/<pid>/stat).
+pub fn parent_of(pid: u32) -> Option<u32> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // The command name (field 2) is in parentheses and may hold spaces.
+    let after_name = &stat[stat.rfind(')')? + 1..];
+    after_name.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Whether process `pid` is still running (it exists and is not a zombie).
+pub fn is_running(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|stat| {
+        stat.rfind(')')
+            .and_then(|i| stat[i + 1..].split_whitespace().next())
+            .is_some_and(|state| state != "Z" && state != "X")
+    })
 }
