@@ -195,9 +195,11 @@ impl Trainer {
         )?;
         self.shared.weights.send_replace(Arc::new(last));
         // Nothing accepted goes uncounted: refuse new fragments, then count what was queued
-        // or waiting for a full batch.
+        // or waiting for a full batch. `recv` (not `try_recv`) also waits for places a
+        // transport reserved before the close (the shared-memory server's), which it fills
+        // in moments.
         self.queue.close();
-        while let Ok(fragment) = self.queue.try_recv() {
+        while let Some(fragment) = self.runtime.block_on(self.queue.recv()) {
             self.observe(&fragment, &mut reporter, &mut window);
             pending.push(fragment);
         }
@@ -555,6 +557,17 @@ mod tests {
         for f in &sent {
             tx.try_send(f.clone()).unwrap();
         }
+        // A place reserved before the run ends and filled after it (as the shared-memory
+        // server may): that fragment is counted too.
+        let late = fragment(3, 1);
+        let reserved = tx.clone().try_reserve_owned().unwrap();
+        let filler = {
+            let late = late.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(std::time::Duration::from_millis(300));
+                reserved.send(late);
+            })
+        };
         let trainer = Trainer {
             shared: Arc::clone(&shared),
             algorithm,
@@ -570,14 +583,19 @@ mod tests {
             },
         };
         let progress = trainer.run().unwrap();
+        filler.join().unwrap();
         let m = &shared.metrics;
         let dropped = |reason: &str| m.agent_steps_dropped.with_label_values(&[reason]).get();
         assert_eq!((progress.version, progress.agent_steps), (1, 2 * (3 + 2)));
         assert_eq!(m.agent_steps.get(), 10);
         assert_eq!(dropped(DROP_STALE), 2 * 4);
-        assert_eq!(dropped(DROP_SHUTDOWN), 2 * (1 + 5));
+        assert_eq!(dropped(DROP_SHUTDOWN), 2 * (1 + 5 + 3));
         assert_eq!(dropped(DROP_UPDATE_FAILED), 0);
-        let total: u64 = sent.iter().map(|f| f.agent_steps() as u64).sum();
+        let total: u64 = sent
+            .iter()
+            .chain([&late])
+            .map(|f| f.agent_steps() as u64)
+            .sum();
         assert_eq!(
             m.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN),
             total
@@ -586,14 +604,14 @@ mod tests {
             m.fragments_dropped
                 .with_label_values(&[DROP_SHUTDOWN])
                 .get(),
-            2
+            3
         );
         // The queue is closed: nothing can be accepted after the final count.
         assert!(tx.try_send(fragment(1, 1)).is_err());
         // The last progress line carries the same accounting.
         let log = std::fs::read_to_string(dir.join("progress.jsonl")).unwrap();
         let last: serde_json::Value = serde_json::from_str(log.lines().last().unwrap()).unwrap();
-        assert_eq!(last["dropped_agent_steps"]["shutdown"], 12);
+        assert_eq!(last["dropped_agent_steps"]["shutdown"], 18);
         assert_eq!(last["dropped_agent_steps"]["stale"], 8);
         assert_eq!(last["agent_steps"], 10);
         let _ = std::fs::remove_dir_all(&dir);
