@@ -83,7 +83,8 @@ pub fn realistic_fragment(config: &RunConfig, seed: u64) -> RolloutFragment {
         config.rollout.fragment_length,
         config.scenario.agent_count(),
     );
-    let obs_dim = config.scenario.obs_dim();
+    // What the run's policy takes (CoPO's observation carries the LCF angle too).
+    let obs_dim = config.policy_obs_dim();
     let cells = steps * agents;
     let per_agent = NEIGHBOURS.min(agents - 1);
     let mut uniform = |n: usize, low: f32, high: f32| -> Vec<f32> {

@@ -103,6 +103,7 @@ impl Learner {
 /// What an actor's sender thread holds: its fragment publisher, registered (the learner has
 /// attached to it).
 struct ActorPorts {
+    reply: proto::RegisterReply,
     publisher: shm::BytesPublisher,
     _services: (shm::BytesService, shm::RegisterService),
     _node: shm::ShmNode,
@@ -123,6 +124,7 @@ fn connect_actor(names: &Names) -> ActorPorts {
     let reply = shm::register(&client, &hello, Duration::from_secs(10), &abort).unwrap();
     assert!(!reply.actor_id.is_empty());
     ActorPorts {
+        reply,
         publisher,
         _services: (fragments, register),
         _node: node,
@@ -229,6 +231,10 @@ fn a_fragment_sent_over_grpc_and_over_shm_arrives_as_equal_values() {
     );
     assert_eq!(learner.bytes("grpc"), grpc_bytes as u64);
     assert_eq!(learner.shared.metrics.fragments.get(), 2);
+    assert_eq!(
+        learner.shared.metrics.agent_steps_accepted.get(),
+        2 * fragment.agent_steps() as u64
+    );
 }
 
 #[test]
@@ -260,6 +266,8 @@ fn a_full_learner_makes_shm_publishers_wait_and_loses_nothing() {
         "the publisher should wait once queue and buffer are full"
     );
     assert_eq!(learner.queue.len(), queue);
+    // Accepted means queued: the fragments waiting in the subscriber's buffer are not yet.
+    assert_eq!(learner.shared.metrics.fragments.get(), queue as u64);
 
     // A slow learner: every fragment arrives, in order, none rejected or dropped.
     let mut received = Vec::new();
@@ -274,6 +282,13 @@ fn a_full_learner_makes_shm_publishers_wait_and_loses_nothing() {
     actor.leave();
     assert_eq!(received, fragments);
     assert_eq!(learner.shared.metrics.fragments.get(), total as u64);
+    assert_eq!(
+        learner.shared.metrics.agent_steps_accepted.get(),
+        fragments
+            .iter()
+            .map(|f| f.agent_steps() as u64)
+            .sum::<u64>()
+    );
     assert!(
         junction_common::fragment::FragmentError::REASONS
             .iter()
@@ -317,12 +332,88 @@ fn other_layout_versions_and_broken_buffers_are_refused_counted_and_survived() {
     assert_eq!(learner.rejected("scenario"), 1);
     assert_eq!(learner.rejected("non_finite"), 1);
     assert_eq!(learner.shared.metrics.fragments.get(), 1);
+    assert_eq!(
+        learner.shared.metrics.agent_steps_accepted.get(),
+        fragment.agent_steps() as u64
+    );
     let all_bytes = [other_version, truncated, other_scenario, nan, valid]
         .iter()
         .map(Vec::len)
         .sum::<usize>();
     assert_eq!(learner.bytes("shm"), all_bytes as u64);
     assert!(learner.next(Duration::from_millis(200)).is_none());
+}
+
+#[test]
+fn a_closed_queue_accepts_nothing_over_either_transport() {
+    let config = small_run(4);
+    let mut learner = Learner::start("closed", config.clone());
+    // The trainer has finished: it closed the queue.
+    learner.queue.close();
+    let fragment = realistic_fragment(&config, 5);
+
+    let actor = Sender::start(learner.names(), vec![fragment.clone()]);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while actor.sent() < 1 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(actor.sent(), 1, "the send fits the subscriber's buffer");
+    std::thread::sleep(Duration::from_millis(300));
+    actor.leave();
+
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let status = runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let service = LearnerServer::new(LearnerService::new(learner.ingest.clone()));
+        tokio::spawn(
+            tonic::transport::Server::builder()
+                .add_service(service)
+                .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
+        );
+        let mut client = LearnerClient::connect(format!("http://{addr}"))
+            .await
+            .unwrap();
+        client
+            .push_rollouts(tokio_stream::iter(vec![fragment.clone().into_proto()]))
+            .await
+            .unwrap_err()
+    });
+    assert_eq!(status.code(), tonic::Code::Unavailable, "{status:?}");
+
+    let metrics = &learner.shared.metrics;
+    assert_eq!(metrics.fragments.get(), 0);
+    assert_eq!(metrics.agent_steps_accepted.get(), 0);
+    // Not accepted, and not the data's fault either.
+    assert!(
+        junction_common::fragment::FragmentError::REASONS
+            .iter()
+            .chain(&["decode", "scenario"])
+            .all(|r| learner.rejected(r) == 0)
+    );
+    assert!(learner.next(Duration::from_millis(100)).is_none());
+}
+
+#[test]
+fn copo_runs_take_fragments_with_the_lcf_column_over_shm() {
+    let mut config = small_run(4);
+    config.learner.algo = junction_common::config::AlgoKind::Copo;
+    let mut learner = Learner::start("copo", config.clone());
+    let fragment = realistic_fragment(&config, 9);
+    assert_eq!(fragment.obs_dim, config.scenario.obs_dim() + 1);
+    let scenario_sized = realistic_fragment(&small_run(4), 9);
+    let actor = connect_actor(&learner.names());
+    // Registration over shared memory tells the actor what the policy takes, as over gRPC.
+    assert_eq!(actor.reply.obs_dim as usize, config.policy_obs_dim());
+    shm::send_fragment(&actor.publisher, &scenario_sized).unwrap();
+    shm::send_fragment(&actor.publisher, &fragment).unwrap();
+    let arrived = learner
+        .next(Duration::from_secs(10))
+        .expect("the CoPO-shaped fragment");
+    assert_eq!(arrived, fragment);
+    // A fragment without the LCF column does not fit the run.
+    assert_eq!(learner.rejected("shape"), 1);
+    assert_eq!(learner.shared.metrics.fragments.get(), 1);
 }
 
 #[test]
@@ -333,10 +424,10 @@ fn actors_register_and_follow_the_newest_weights_over_shm() {
     let node = shm::node("junction-test-actor").unwrap();
     let register = shm::register_service(&node, &names, Side::Actor).unwrap();
     let client = shm::register_client(&register).unwrap();
-    let ask = |protocol_version: u32| -> proto::RegisterReply {
+    let ask_as = |protocol_version: u32, actor_name: &str| -> proto::RegisterReply {
         let hello = proto::RegisterRequest {
             protocol_version,
-            actor_name: "test".into(),
+            actor_name: actor_name.into(),
             scenes: 2,
         }
         .encode_to_vec();
@@ -355,6 +446,7 @@ fn actors_register_and_follow_the_newest_weights_over_shm() {
         }
         panic!("no registration reply");
     };
+    let ask = |protocol_version: u32| ask_as(protocol_version, "test");
     let first = ask(PROTOCOL_VERSION);
     let second = ask(PROTOCOL_VERSION);
     assert!(first.actor_id.starts_with("actor-"), "{first:?}");
@@ -369,6 +461,9 @@ fn actors_register_and_follow_the_newest_weights_over_shm() {
     let refused = ask(PROTOCOL_VERSION + 1);
     assert!(refused.actor_id.is_empty());
     assert_eq!(refused.protocol_version, PROTOCOL_VERSION);
+    // Names end up in logs: an absurd one is refused as over gRPC.
+    let long_name = "x".repeat(junction_common::fragment::MAX_NAME_BYTES + 1);
+    assert!(ask_as(PROTOCOL_VERSION, &long_name).actor_id.is_empty());
 
     // A late joiner gets the current weights from the history, then every newer version.
     let weights_service = shm::weights_service(&node, &names, Side::Actor).unwrap();

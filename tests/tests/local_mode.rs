@@ -157,3 +157,83 @@ fn a_killed_learner_takes_its_local_actors_with_it_and_a_new_one_starts_cleanly(
         learner.log_tail(40)
     );
 }
+
+/// Local actors load whatever policy the learner broadcasts over shared memory, as gRPC actors
+/// do: CoPO's (one more observation value, the LCF angle drawn from the blob's distribution)
+/// and DQN's Q-policy. An actor that could not would exit and be restarted, and no fragment
+/// would reach the learner.
+#[test]
+fn local_actors_run_copo_and_dqn_policies_over_shm() {
+    let dir = TempDir::new("local-algos");
+    let algos: [(&str, &[&str]); 2] = [
+        ("copo", &["--set", "ppo.train_batch_env_steps=100"]),
+        (
+            "dqn",
+            &[
+                "--set",
+                "dqn.train_batch_env_steps=100",
+                "--set",
+                "dqn.learning_starts=100",
+            ],
+        ),
+    ];
+    for (algo, settings) in algos {
+        let algo_setting = format!("learner.algo=\"{algo}\"");
+        let args = [
+            &[
+                "--local-actors",
+                "1",
+                "--max-seconds",
+                "120",
+                "--scenario",
+                "tiny-straight",
+                "--set",
+                &algo_setting,
+                "--set",
+                "rollout.fragment_length=50",
+                "--set",
+                "run.progress_interval_s=1",
+            ],
+            settings,
+        ]
+        .concat();
+        let log_dir = dir.path().join(algo);
+        std::fs::create_dir_all(&log_dir).expect("log dir");
+        let (mut learner, endpoints) =
+            start_learner(&dir.path().join(algo).join("run"), &log_dir, &args);
+        let trained = wait_until(Duration::from_secs(90), || {
+            version(&endpoints.metrics) >= 3.0
+        });
+        let m = scrape(&endpoints.metrics);
+        assert!(
+            trained,
+            "{algo}: no 3 versions from a local actor: {m:?}\n{}",
+            learner.log_tail(40)
+        );
+        assert!(
+            metric_sum(
+                &m,
+                "junction_learner_transport_received_bytes_total{transport=\"shm\"}"
+            ) > 0.0
+        );
+        assert_eq!(
+            metric_sum(&m, "junction_learner_fragments_rejected_total"),
+            0.0,
+            "{algo}"
+        );
+        assert_eq!(
+            metric_sum(&m, "junction_learner_local_actor_restarts_total"),
+            0.0,
+            "{algo}: the local actor failed\n{}",
+            learner.log_tail(40)
+        );
+        learner.signal(libc::SIGTERM);
+        assert!(
+            learner
+                .wait_exit(Duration::from_secs(90))
+                .is_some_and(|s| s.success()),
+            "{algo}\n{}",
+            learner.log_tail(40)
+        );
+    }
+}
