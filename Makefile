@@ -1,5 +1,5 @@
 # The two commands a new user needs (see README.md):
-#   make run    set up, build, train locally (learner + 2 actors over gRPC) for a few minutes
+#   make run    set up, build, train locally (learner + 2 local actors over shared memory) for a few minutes
 #   make test   set up, build, run every test (this is what CI runs via .ci/run)
 #   make experiments BUDGET=N   the paper's method × scene × seed grid and its report
 #                               (scripts/experiments.sh documents every knob)

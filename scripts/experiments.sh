@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The experiment grid of issue #7 (paper §4): every method × scene × seed trained to an
-# agent-step budget (learner + actors on loopback), each final checkpoint evaluated with
-# `actor eval`, then `learner report` and OUT/RESULTS.md.
+# agent-step budget (the local mode: learner + actors over shared memory), each final
+# checkpoint evaluated with `actor eval`, then `learner report` and OUT/RESULTS.md.
 #
 #   make experiments BUDGET=200000                      # or: scripts/experiments.sh
 #   BUDGET=2000000 SEEDS="1 2 3" METHODS="ippo copo" SCENES="intersection" scripts/experiments.sh
@@ -66,7 +66,7 @@ method_flags() {
 }
 
 # Trains one run into $1 (method $2, scene $3, seed $4). The one place a run is launched:
-# switching to `learner serve --local-actors N` happens here (or in run-local.sh).
+# run-local.sh, i.e. `learner serve --local-actors ACTORS` over shared memory.
 launch_run() {
     local run_dir=$1 method=$2 scene=$3 seed=$4
     # shellcheck disable=SC2046,SC2086 # the flag variables are lists of flags
@@ -204,7 +204,7 @@ fi
     echo "  PROGRESS_S=$PROGRESS_S SUCCESS=$SUCCESS LEARNER_FLAGS=\"$LEARNER_FLAGS\" scripts/experiments.sh"
     echo '```'
     echo
-    echo "- Budget: $BUDGET agent-steps per run; $ACTORS actors per run (gRPC on loopback), learner on the CPU."
+    echo "- Budget: $BUDGET agent-steps per run; $ACTORS local actors per run (\`learner serve --local-actors\`, shared memory), learner on the CPU."
     echo "- Training seeds (\`run.seed\`): $SEEDS. Evaluation: \`actor eval\` of each final checkpoint, $EVAL_EPISODES agent episodes, seed $EVAL_SEED, $EVAL_SCENES scenes (held-out traffic)."
     echo "- Methods: ${available[*]:-none}."
     for method in "${available[@]}"; do
