@@ -32,7 +32,7 @@ pub struct BenchReport {
 
 /// Neighbours every synthetic agent lists (the next slots, wrapping round): a stand-in so the
 /// centralised critics pay for building their inputs, not a measured count.
-const SYNTHETIC_NEIGHBOURS: usize = 8;
+pub const SYNTHETIC_NEIGHBOURS: usize = 8;
 
 /// One training batch: enough fragments of every agent alive for the algorithm's train batch
 /// (`ppo.train_batch_env_steps`, or `dqn.train_batch_env_steps` for DQN), acted by its policy
@@ -50,10 +50,7 @@ pub fn synthetic_batch(
     let obs_dim = config.policy_obs_dim();
     let cells = steps * agents;
     let fragments = config.train_batch_env_steps().div_ceil(steps);
-    let per_agent = SYNTHETIC_NEIGHBOURS.min(agents - 1);
-    let neighbour_ids: Vec<u32> = (0..cells)
-        .flat_map(|cell| (1..=per_agent).map(move |d| ((cell % agents + d) % agents) as u32))
-        .collect();
+    let (neighbour_offsets, neighbour_ids) = ring_neighbours(steps, agents, SYNTHETIC_NEIGHBOURS);
     (0..fragments)
         .map(|_| {
             let obs: Vec<f32> = (0..cells * obs_dim).map(|_| rng.r#gen::<f32>()).collect();
@@ -72,13 +69,26 @@ pub fn synthetic_batch(
                 dones: vec![false; cells],
                 alive: vec![true; cells],
                 bootstrap_obs: (0..agents * obs_dim).map(|_| rng.r#gen::<f32>()).collect(),
-                neighbour_offsets: (0..=cells).map(|c| (c * per_agent) as u32).collect(),
+                neighbour_offsets: neighbour_offsets.clone(),
                 neighbour_ids: neighbour_ids.clone(),
                 lcf_features: vec![0.0; cells * lcf::FEATURES],
                 ..RolloutFragment::default()
             })
         })
         .collect()
+}
+
+/// Neighbour lists (CSR offsets and ids) of `steps` × `agents` cells in which every agent sees
+/// the next `per_agent` slots round the ring (at most every other agent): synthetic fragments
+/// with a neighbourhood to build critic inputs and coordination from.
+pub fn ring_neighbours(steps: usize, agents: usize, per_agent: usize) -> (Vec<u32>, Vec<u32>) {
+    let cells = steps * agents;
+    let per_agent = per_agent.min(agents.saturating_sub(1));
+    let offsets = (0..=cells).map(|c| (c * per_agent) as u32).collect();
+    let ids = (0..cells)
+        .flat_map(|cell| (1..=per_agent).map(move |d| ((cell % agents + d) % agents) as u32))
+        .collect();
+    (offsets, ids)
 }
 
 /// Times `updates` updates of `algorithm` on one synthetic batch.

@@ -27,6 +27,7 @@ use junction_common::{
     GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
 };
 
+use crate::bench::{SYNTHETIC_NEIGHBOURS, ring_neighbours};
 use crate::ingest::Ingest;
 use crate::metrics::{LearnerMetrics, REJECT_DECODE, REJECT_SCENARIO};
 use crate::server::{LearnerService, Shared};
@@ -71,10 +72,6 @@ impl TransportReport {
     }
 }
 
-/// Neighbours each agent lists in a synthetic fragment (the simulator's count varies with
-/// traffic; 8 is a busy junction).
-const NEIGHBOURS: usize = 8;
-
 /// A valid fragment of the run's shape with realistic content: observations in [0, 1], every
 /// slot's agent finishing once (and a new one taking its place), 8 neighbours per agent.
 pub fn realistic_fragment(config: &RunConfig, seed: u64) -> RolloutFragment {
@@ -86,7 +83,7 @@ pub fn realistic_fragment(config: &RunConfig, seed: u64) -> RolloutFragment {
     // What the run's policy takes (CoPO's observation carries the LCF angle too).
     let obs_dim = config.policy_obs_dim();
     let cells = steps * agents;
-    let per_agent = NEIGHBOURS.min(agents - 1);
+    let (neighbour_offsets, neighbour_ids) = ring_neighbours(steps, agents, SYNTHETIC_NEIGHBOURS);
     let mut uniform = |n: usize, low: f32, high: f32| -> Vec<f32> {
         (0..n).map(|_| rng.gen_range(low..high)).collect()
     };
@@ -109,10 +106,8 @@ pub fn realistic_fragment(config: &RunConfig, seed: u64) -> RolloutFragment {
         dones,
         alive: vec![true; cells],
         bootstrap_obs: uniform(agents * obs_dim, 0.0, 1.0),
-        neighbour_offsets: (0..=cells).map(|c| (c * per_agent) as u32).collect(),
-        neighbour_ids: (0..cells)
-            .flat_map(|cell| (1..=per_agent).map(move |d| ((cell % agents + d) % agents) as u32))
-            .collect(),
+        neighbour_offsets,
+        neighbour_ids,
         lcf_features: uniform(cells * lcf::FEATURES, 0.0, 1.0),
         episodes: (0..agents)
             .map(|_| EpisodeStats {
