@@ -2,7 +2,8 @@
 //! paper shows (§4): a table like its Table 1 per scene (methods as columns, metrics as rows,
 //! mean ± 95 % interval over seeds) and figures of the training curves (intersection and
 //! roundabout side by side, methods overlaid), plus the time each run took to reach a success
-//! rate. Writes `report.md`, `summary.json` and `figures/<metric>.png|svg`.
+//! rate, and the LCF angle φ the coordinating methods learned per neighbour count. Writes
+//! `report.md`, `summary.json` and `figures/<metric>.png|svg`.
 
 pub mod aggregate;
 pub mod plot;
@@ -15,11 +16,13 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use serde::Serialize;
 
-use junction_common::confidence::Estimate;
+use junction_common::confidence::{Estimate, mean_t};
 use junction_common::evaluation::{METRICS, format_number, metric_def};
 
 use aggregate::{Reach, Source};
 use runs::Run;
+
+use crate::progress::LcfProgress;
 
 /// Curves drawn, one figure each, in this order.
 pub const FIGURE_METRICS: [&str; 10] = [
@@ -97,6 +100,50 @@ pub struct GroupSummary {
     pub mean_reach: Option<Reach>,
     /// Best windowed success of any seed, and where.
     pub best_success: Option<(f64, Reach)>,
+    /// φ of the final update, for methods whose φ is not 0 throughout.
+    pub lcf: Option<LcfSummary>,
+}
+
+/// The LCF angle φ (degrees) of each seed's final update, mean ± interval over seeds: the
+/// paper expects dense neighbourhoods to end up cooperative and sparse ones self-interested.
+#[derive(Debug, Clone, Serialize)]
+pub struct LcfSummary {
+    pub mean_deg: Estimate,
+    /// Per bucket of live-neighbour count ("0", "1-2", "3-5", "6+"), over the seeds that
+    /// saw agents in it.
+    pub by_neighbours: BTreeMap<String, Estimate>,
+}
+
+/// None when no seed logged φ, or φ is 0 everywhere (an agent's own reward: nothing learned).
+fn final_lcf(members: &[&Run]) -> Option<LcfSummary> {
+    let finals: Vec<&LcfProgress> = members
+        .iter()
+        .filter_map(|r| r.lines.iter().rev().find_map(|l| l.lcf.as_ref()))
+        .collect();
+    let nonzero = |l: &&LcfProgress| {
+        l.mean_deg != 0.0 || l.std_deg != 0.0 || l.phi_deg_by_neighbours.values().any(|v| *v != 0.0)
+    };
+    if !finals.iter().any(nonzero) {
+        return None;
+    }
+    let buckets: std::collections::BTreeSet<&String> = finals
+        .iter()
+        .flat_map(|l| l.phi_deg_by_neighbours.keys())
+        .collect();
+    let by_neighbours = buckets
+        .into_iter()
+        .map(|bucket| {
+            let values: Vec<f64> = finals
+                .iter()
+                .filter_map(|l| l.phi_deg_by_neighbours.get(bucket).copied())
+                .collect();
+            (bucket.clone(), mean_t(&values))
+        })
+        .collect();
+    Some(LcfSummary {
+        mean_deg: mean_t(&finals.iter().map(|l| l.mean_deg).collect::<Vec<_>>()),
+        by_neighbours,
+    })
 }
 
 /// What the report found and wrote; also written as `summary.json`.
@@ -256,6 +303,7 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
         reached_seeds: reaches.len(),
         mean_reach,
         best_success,
+        lcf: final_lcf(members),
     }
 }
 
@@ -445,6 +493,7 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
             g.seeds.len()
         );
     }
+    lcf_table(&mut md, &summary.groups);
     md.push_str("\n## Figures\n\nLines: mean over seeds of the training window (the last `run.stats_window_episodes` episodes) against agent-steps consumed; shading: range over seeds.\n\n");
     for key in FIGURE_METRICS {
         let label = metric_def(key).map_or(key, |d| d.label);
@@ -454,6 +503,45 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
         );
     }
     md
+}
+
+fn lcf_table(md: &mut String, groups: &[GroupSummary]) {
+    let learned: Vec<(&GroupSummary, &LcfSummary)> = groups
+        .iter()
+        .filter_map(|g| Some((g, g.lcf.as_ref()?)))
+        .collect();
+    if learned.is_empty() {
+        return;
+    }
+    let buckets: std::collections::BTreeSet<&String> = learned
+        .iter()
+        .flat_map(|(_, l)| l.by_neighbours.keys())
+        .collect();
+    md.push_str(
+        "\n## Learned LCF angle φ by neighbour count\n\nφ of each seed's final update \
+         (degrees; 0° = own reward, 90° = the neighbours' only), mean ± 95 % over seeds, for the \
+         batch's agents with that many live neighbours. Methods whose φ stays 0 are left out.\n\n\
+         | Scene | Method | all agents |",
+    );
+    for bucket in &buckets {
+        let _ = write!(md, " {bucket} neighbours |");
+    }
+    md.push_str("\n|---|---|---|");
+    md.push_str(&"---|".repeat(buckets.len()));
+    md.push('\n');
+    for (g, lcf) in learned {
+        let _ = write!(
+            md,
+            "| {} | {} | {} |",
+            g.scene,
+            g.method,
+            cell(Some(&lcf.mean_deg))
+        );
+        for bucket in &buckets {
+            let _ = write!(md, " {} |", cell(lcf.by_neighbours.get(*bucket)));
+        }
+        md.push('\n');
+    }
 }
 
 /// The columns with the best mean of a row: every column tied for best, none when fewer than
@@ -483,6 +571,7 @@ fn best_columns(values: &[Option<&Estimate>], higher_is_better: bool) -> Vec<usi
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::progress::ProgressLine;
 
     #[test]
     fn preferred_order_first_then_the_rest_sorted() {
@@ -505,5 +594,90 @@ mod tests {
         assert!(best_columns(&[Some(&a), None], true).is_empty());
         assert_eq!(cell(Some(&a)), "0.2000 (1 seed)");
         assert_eq!(cell(None), "—");
+    }
+
+    fn run_with_lcf(seed: u64, lcfs: &[Option<(f64, &[(&str, f64)])>]) -> Run {
+        let lines = lcfs
+            .iter()
+            .map(|lcf| ProgressLine {
+                lcf: lcf.map(|(mean_deg, buckets)| LcfProgress {
+                    mean_deg,
+                    std_deg: 5.0,
+                    phi_deg_by_neighbours: buckets
+                        .iter()
+                        .map(|(b, v)| (b.to_string(), *v))
+                        .collect(),
+                }),
+                ..ProgressLine::default()
+            })
+            .collect();
+        Run {
+            dir: PathBuf::from(format!("dynamic-lcf-s{seed}")),
+            method: "dynamic-lcf".into(),
+            scene: "intersection".into(),
+            seed,
+            lines,
+            bad_lines: 0,
+            evals: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn final_lcf_averages_each_seeds_last_angle_per_bucket() {
+        // Seed 1's last line has no φ (a restarted learner before its first update): its
+        // previous line counts. Seed 2 never saw an agent with 6+ neighbours.
+        let a = run_with_lcf(
+            1,
+            &[
+                Some((1.0, &[("0", 1.0)])),
+                Some((20.0, &[("0", 10.0), ("6+", 60.0)])),
+                None,
+            ],
+        );
+        let b = run_with_lcf(2, &[Some((40.0, &[("0", 30.0)]))]);
+        let lcf = final_lcf(&[&a, &b]).expect("φ learned");
+        assert_eq!(lcf.mean_deg.value, 30.0);
+        assert_eq!(lcf.mean_deg.n, 2);
+        assert_eq!(lcf.by_neighbours["0"].value, 20.0);
+        assert_eq!(lcf.by_neighbours["6+"].value, 60.0);
+        assert_eq!(lcf.by_neighbours["6+"].n, 1);
+        assert_eq!(lcf.by_neighbours.len(), 2);
+
+        let mut markdown = String::new();
+        let group = GroupSummary {
+            scene: "intersection".into(),
+            method: "dynamic-lcf".into(),
+            seeds: vec![1, 2],
+            source: Source::Training,
+            metrics: BTreeMap::new(),
+            mean_agent_steps: 0.0,
+            mean_wall_s: 0.0,
+            reached_seeds: 0,
+            mean_reach: None,
+            best_success: None,
+            lcf: Some(lcf),
+        };
+        lcf_table(&mut markdown, &[group]);
+        assert!(
+            markdown.contains("| Scene | Method | all agents | 0 neighbours | 6+ neighbours |"),
+            "{markdown}"
+        );
+        assert!(markdown.contains("| 60.00 (1 seed) |"), "{markdown}");
+    }
+
+    #[test]
+    fn a_zero_angle_throughout_is_not_a_learned_one() {
+        let fixed = run_with_lcf(1, &[Some((0.0, &[("0", 0.0), ("1-2", 0.0)]))]);
+        let mut zero = fixed.clone();
+        for line in &mut zero.lines {
+            if let Some(l) = &mut line.lcf {
+                l.std_deg = 0.0;
+            }
+        }
+        assert!(final_lcf(&[&zero]).is_none());
+        assert!(final_lcf(&[&run_with_lcf(1, &[None])]).is_none());
+        let mut markdown = String::new();
+        lcf_table(&mut markdown, &[]);
+        assert!(markdown.is_empty());
     }
 }
