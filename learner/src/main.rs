@@ -109,8 +109,8 @@ struct BenchTransportArgs {
 struct BenchArgs {
     #[command(flatten)]
     source: ConfigSource,
-    /// Algorithm to time: ippo, cl, ccppo-mf, ccppo-concat or dqn [config: learner.algo,
-    /// default ippo].
+    /// Algorithm to time: ippo, cl, ccppo-mf, ccppo-concat, copo, dynamic-lcf or dqn
+    /// [config: learner.algo, default ippo].
     #[arg(long)]
     algo: Option<String>,
     /// Timed updates (after one untimed warm-up update).
