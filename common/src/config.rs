@@ -5,6 +5,9 @@
 //! `--set key=value` overrides. Every struct denies unknown keys so a typo is an error, not a
 //! silently ignored setting.
 
+// `!(x >= 0.0)` rather than `x < 0.0` throughout the checks: the negation also rejects NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
@@ -1069,9 +1072,7 @@ mod tests {
         for line in DEFAULT_TOML.lines().map(str::trim) {
             if line.starts_with('#') {
                 previous_was_doc = true;
-            } else if line.is_empty() {
-                previous_was_doc = false;
-            } else if line.starts_with('[') {
+            } else if line.is_empty() || line.starts_with('[') {
                 previous_was_doc = false;
             } else {
                 assert!(previous_was_doc, "undocumented key in default.toml: {line}");

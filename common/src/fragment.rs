@@ -123,7 +123,7 @@ impl EpisodeStats {
             .collect()
     }
 
-    fn to_proto(&self) -> proto::EpisodeStats {
+    fn to_proto(self) -> proto::EpisodeStats {
         proto::EpisodeStats {
             outcome: self.outcome as u32,
             length: self.length,
@@ -447,10 +447,14 @@ impl RolloutFragment {
             neighbour_offsets: self.neighbour_offsets,
             neighbour_ids: self.neighbour_ids,
             lcf_features: self.lcf_features,
-            episodes: self.episodes.iter().map(EpisodeStats::to_proto).collect(),
+            episodes: self
+                .episodes
+                .into_iter()
+                .map(EpisodeStats::to_proto)
+                .collect(),
             human_episodes: self
                 .human_episodes
-                .iter()
+                .into_iter()
                 .map(EpisodeStats::to_proto)
                 .collect(),
             sim_seconds: self.sim_seconds,

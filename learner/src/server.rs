@@ -310,12 +310,7 @@ impl Learner for LearnerService {
         &self,
         _request: Request<proto::StatusRequest>,
     ) -> Result<Response<proto::StatusReply>, Status> {
-        let mut reply = self
-            .shared
-            .status
-            .lock()
-            .map(|s| s.clone())
-            .unwrap_or_default();
+        let mut reply = self.shared.status.lock().map(|s| *s).unwrap_or_default();
         reply.connected_actors = self.shared.metrics.connected_actors.get().max(0) as u32;
         Ok(Response::new(reply))
     }

@@ -283,7 +283,7 @@ impl Trainer {
             .set(self.progress.version as i64);
         log_update(&stats, seconds);
         let every = self.shared.config.run.checkpoint_every_updates;
-        if every > 0 && self.progress.updates % every == 0 {
+        if every > 0 && self.progress.updates.is_multiple_of(every) {
             self.checkpoint()?;
         }
         Ok(Some(stats))

@@ -45,6 +45,8 @@ fn arm_direction(arm: usize) -> Vec2 {
 }
 
 impl Intersection {
+    // `!(w > 0.0)` rather than `w <= 0.0`: the negation also rejects NaN.
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn new(config: &IntersectionConfig) -> Result<Intersection, SimError> {
         let n = config.lanes_per_direction;
         let w = config.lane_width;
@@ -92,8 +94,8 @@ impl Intersection {
         let uturn_radius = (offset(0) + offset(n - 1)) / 2.0;
         let mut routes = Vec::new();
         let mut entries: Vec<Entry> = Vec::new();
-        for arm in 0..arms {
-            for k in 0..n {
+        for (arm, arm_incoming) in incoming.iter().enumerate().take(arms) {
+            for (k, &from) in arm_incoming.iter().enumerate().take(n) {
                 let mut entry_routes = Vec::new();
                 for &manoeuvre in &config.routes {
                     let (to_arm, lane_k) = match manoeuvre {
@@ -108,7 +110,6 @@ impl Intersection {
                     if to_arm >= arms {
                         continue;
                     }
-                    let from: LaneId = incoming[arm][k];
                     let to: LaneId = outgoing[to_arm][lane_k];
                     let (p, q) = (lanes[from].end(), lanes[to].start());
                     let (left, right) = (lanes[from].left_edge, lanes[from].right_edge);
@@ -147,7 +148,7 @@ impl Intersection {
                 }
                 if !entry_routes.is_empty() {
                     entries.push(Entry {
-                        lane: incoming[arm][k],
+                        lane: from,
                         routes: entry_routes,
                     });
                 }

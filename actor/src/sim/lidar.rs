@@ -64,10 +64,10 @@ pub fn scan(
         for b in first..=last {
             let beam = b.rem_euclid(beams as i64) as usize;
             let dir = Vec2::from_angle(heading + beam as f32 * step);
-            if let Some(t) = ray_box(origin, dir, centre, body_heading) {
-                if t < out[beam] {
-                    out[beam] = t;
-                }
+            if let Some(t) = ray_box(origin, dir, centre, body_heading)
+                && t < out[beam]
+            {
+                out[beam] = t;
             }
         }
     }

@@ -603,10 +603,11 @@ impl Scene {
             observation::write_lidar(row, &self.lidar, range);
             neighbours.clear();
             grid.for_each_near(p, radius, |j| {
-                if let Some(other) = bodies[j].2.filter(|&o| o < agents) {
-                    if other != slot && (bodies[j].0 - p).length() <= radius {
-                        neighbours.push(other as u32);
-                    }
+                if let Some(other) = bodies[j].2.filter(|&o| o < agents)
+                    && other != slot
+                    && (bodies[j].0 - p).length() <= radius
+                {
+                    neighbours.push(other as u32);
                 }
             });
             // Nearest first (ties by slot), so "the k nearest" is a prefix of the list.

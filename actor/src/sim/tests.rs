@@ -81,14 +81,14 @@ fn two_cars_on_crossing_paths_collide() {
     let mut crashed = [false; 2];
     for _ in 0..60 {
         let result = scene.step(&[0.0, 0.3, 0.0, 0.3]).clone();
-        for slot in 0..2 {
+        for (slot, slot_crashed) in crashed.iter_mut().enumerate() {
             if result.dones[slot] {
                 let e = result.finished.iter().find(|e| e.slot == slot).unwrap();
                 assert_eq!(e.stats.outcome, Outcome::Crash, "slot {slot}");
                 assert_eq!(result.rewards[slot], scene.config().reward.crash);
                 assert_eq!(result.costs[slot], scene.config().cost.collision);
                 assert_eq!(e.stats.collisions, 1);
-                crashed[slot] = true;
+                *slot_crashed = true;
             }
         }
         if crashed == [true, true] {
@@ -430,7 +430,7 @@ fn the_scene_horizon_ends_every_agent_as_a_timeout_and_resets() {
     let mut cfg = config(10);
     cfg.horizon = 20;
     let mut scene = Scene::new(&cfg, 7).unwrap();
-    let stopped = vec![0.0, -1.0].repeat(10);
+    let stopped = [0.0, -1.0].repeat(10);
     for _ in 0..19 {
         assert!(
             scene.step(&stopped).finished.is_empty(),

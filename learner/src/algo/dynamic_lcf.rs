@@ -233,8 +233,8 @@ mod tests {
     use crate::algo::ippo::OwnObservation;
     use crate::algo::shared_ppo::SharedPpo;
     use crate::algo::shared_ppo::testing::{
-        assert_checkpoint_round_trip, constant_critic_batch, host_state, neighbourhood_fragment,
-        small_run,
+        assert_checkpoint_round_trip, constant_critic_batch, copy_networks, host_state,
+        neighbourhood_fragment, small_run,
     };
     use junction_common::config::RunConfig;
 
@@ -304,7 +304,6 @@ mod tests {
         let fragment = neighbourhood_fragment();
         // f_ψ ≡ 0 (φ = 0) and a meta step size of 0, so φ stays 0.
         let zero = constant(0.0, &run.lcf, 0.0);
-        tch::manual_seed(5);
         let mut dynamic = SharedPpo::new(
             "dynamic-lcf",
             OwnObservation,
@@ -314,7 +313,6 @@ mod tests {
             2,
             Device::Cpu,
         );
-        tch::manual_seed(5);
         let mut ippo = SharedPpo::new(
             "ippo",
             OwnObservation,
@@ -324,6 +322,7 @@ mod tests {
             2,
             Device::Cpu,
         );
+        copy_networks(&dynamic, &mut ippo);
         for _ in 0..2 {
             let stats = dynamic.update(std::slice::from_ref(&fragment)).unwrap();
             assert_eq!((stats.lcf_mean_deg, stats.lcf_std_deg), (0.0, 0.0));

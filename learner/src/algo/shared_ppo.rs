@@ -503,6 +503,26 @@ pub(crate) mod testing {
             .collect()
     }
 
+    /// Gives `to` the policy and the same-named critic parameters of `from`. Two learners
+    /// compared for equality start equal this way, not by seeding torch twice: its global RNG
+    /// is shared with the tests running beside them.
+    pub fn copy_networks<A: CriticInput, B: CriticInput>(
+        from: &SharedPpo<A>,
+        to: &mut SharedPpo<B>,
+    ) {
+        to.policy
+            .load_bytes(&from.policy.to_bytes(0).unwrap())
+            .unwrap();
+        let source = from.critic_store.variables();
+        tch::no_grad(|| {
+            for (name, mut variable) in to.critic_store.variables() {
+                if let Some(value) = source.get(&name) {
+                    variable.copy_(value);
+                }
+            }
+        });
+    }
+
     /// A learner restored from another's checkpoint holds the same state and, given the same
     /// fragment, makes the same next update (policy, critic and Adam moments alike).
     pub fn assert_checkpoint_round_trip<A: Algorithm>(make: impl Fn() -> A) {
@@ -546,13 +566,14 @@ pub(crate) mod testing {
 
 #[cfg(test)]
 mod tests {
-    use super::testing::{self, host_state, ippo, neighbourhood_fragment, small_run};
+    use super::testing::{
+        self, copy_networks, host_state, ippo, neighbourhood_fragment, small_run,
+    };
     use super::*;
     use crate::algo::ippo::Ippo;
     use junction_common::config::LcfConfig;
 
     fn learner(lcf: &LcfConfig) -> Ippo {
-        tch::manual_seed(5);
         let mut run = small_run();
         run.run.seed = 3;
         run.lcf = lcf.clone();
@@ -584,6 +605,8 @@ mod tests {
             total_cost: 2.5,
         }];
         let mut safe = lagrangian_ippo();
+        let mut plain = learner(&RunConfig::default().lcf);
+        copy_networks(&safe, &mut plain);
         let names: Vec<String> = safe.state_tensors().into_iter().map(|(n, _)| n).collect();
         assert!(
             names.iter().any(|n| n.starts_with("cost_critic")),
@@ -593,7 +616,6 @@ mod tests {
         // λ = 0 + 0.1 · (2.5 − 0.5)
         assert!((stats.lagrange_multiplier - 0.2).abs() < 1e-6);
         // The cost changes what is learned: a learner without the option ends elsewhere.
-        let mut plain = learner(&RunConfig::default().lcf);
         plain.update(std::slice::from_ref(&fragment)).unwrap();
         assert_ne!(
             safe.policy().to_bytes(1).unwrap(),
@@ -617,6 +639,12 @@ mod tests {
         };
         let mut plain = learner(&lcf(0.0));
         let mut cooperative = learner(&lcf(90.0));
+        copy_networks(&plain, &mut cooperative);
+        // IPPO without coordination configured, starting where `plain` starts.
+        let mut run = small_run();
+        run.run.seed = 3;
+        let mut reference = ippo(&run, 2, 2);
+        copy_networks(&plain, &mut reference);
         let plain_stats = plain.update(std::slice::from_ref(&fragment)).unwrap();
         let cooperative_stats = cooperative.update(std::slice::from_ref(&fragment)).unwrap();
         assert_eq!(
@@ -630,10 +658,6 @@ mod tests {
         );
 
         // φ = 0 is exactly IPPO without coordination configured.
-        tch::manual_seed(5);
-        let mut run = small_run();
-        run.run.seed = 3;
-        let mut reference = ippo(&run, 2, 2);
         reference.update(std::slice::from_ref(&fragment)).unwrap();
         assert_eq!(host_state(&plain), host_state(&reference));
         // φ = 90° learns from the neighbours' rewards: another value function.

@@ -596,7 +596,10 @@ mod tests {
         assert_eq!(cell(None), "—");
     }
 
-    fn run_with_lcf(seed: u64, lcfs: &[Option<(f64, &[(&str, f64)])>]) -> Run {
+    /// φ of one progress line: mean and (bucket, mean) pairs.
+    type Phi<'a> = Option<(f64, &'a [(&'a str, f64)])>;
+
+    fn run_with_lcf(seed: u64, lcfs: &[Phi]) -> Run {
         let lines = lcfs
             .iter()
             .map(|lcf| ProgressLine {
