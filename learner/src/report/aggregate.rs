@@ -211,15 +211,7 @@ mod tests {
     }
 
     fn run(seed: u64, lines: Vec<ProgressLine>) -> Run {
-        Run {
-            dir: format!("run-{seed}").into(),
-            method: "ippo".into(),
-            scene: "intersection".into(),
-            seed,
-            lines,
-            bad_lines: 0,
-            evals: Vec::new(),
-        }
+        Run::fixture("ippo", seed, lines)
     }
 
     #[test]

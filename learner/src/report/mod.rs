@@ -614,15 +614,7 @@ mod tests {
                 ..ProgressLine::default()
             })
             .collect();
-        Run {
-            dir: PathBuf::from(format!("dynamic-lcf-s{seed}")),
-            method: "dynamic-lcf".into(),
-            scene: "intersection".into(),
-            seed,
-            lines,
-            bad_lines: 0,
-            evals: Vec::new(),
-        }
+        Run::fixture("dynamic-lcf", seed, lines)
     }
 
     #[test]

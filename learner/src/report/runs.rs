@@ -41,6 +41,20 @@ impl Run {
     pub fn wall_s(&self) -> f64 {
         self.last().map_or(0.0, |l| l.elapsed_s)
     }
+
+    /// A run of `method` on the intersection made of `lines`, without evaluations.
+    #[cfg(test)]
+    pub fn fixture(method: &str, seed: u64, lines: Vec<ProgressLine>) -> Run {
+        Run {
+            dir: format!("{method}-{seed}").into(),
+            method: method.into(),
+            scene: "intersection".into(),
+            seed,
+            lines,
+            bad_lines: 0,
+            evals: Vec::new(),
+        }
+    }
 }
 
 /// The run directories among `paths`: each path that holds a `progress.jsonl`, else its
