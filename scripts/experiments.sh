@@ -161,7 +161,13 @@ for entry in "${runs[@]}"; do
     elif [ "$train_status" -ne 0 ]; then
         status="training failed (exit $train_status, see $run_dir/train.log)"
     elif [ "${steps:-0}" -lt "$BUDGET" ]; then
-        status="stopped at ${steps:-0} agent-steps, before the budget (MAX_RUN_SECONDS=$MAX_RUN_SECONDS)"
+        # The learner also stops early on a signal sent to it alone, not only at the cap.
+        if [ "$MAX_RUN_SECONDS" -gt 0 ] && [ "$train_s" -ge "$MAX_RUN_SECONDS" ]; then
+            why="MAX_RUN_SECONDS=$MAX_RUN_SECONDS"
+        else
+            why="after $train_s s, under MAX_RUN_SECONDS=$MAX_RUN_SECONDS: stopped from outside"
+        fi
+        status="stopped at ${steps:-0} agent-steps, before the budget ($why)"
     fi
     eval_s=""
     if [ "$train_status" -eq 0 ] && [ "$interrupted" = 0 ]; then
