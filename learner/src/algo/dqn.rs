@@ -335,7 +335,7 @@ fn read_counter(state: &mut Decoded, name: &str) -> Result<u64, WeightsError> {
 mod tests {
     use super::*;
     use crate::algo::shared_ppo::testing::{
-        assert_checkpoint_round_trip, host_state, neighbourhood_fragment,
+        assert_checkpoint_round_trip, host_state, neighbourhood_fragment, one_step_fragment,
     };
     use junction_common::config::RunConfig;
     use junction_common::weights;
@@ -556,23 +556,7 @@ mod tests {
                 .chunks(2)
                 .map(|a| -(a[0] - 0.5).powi(2) - (a[1] - 1.0).powi(2))
                 .collect();
-            let fragment = RolloutFragment {
-                steps: 1,
-                agents,
-                obs_dim: 3,
-                action_dim: 2,
-                obs: obs.clone(),
-                actions,
-                log_probs,
-                rewards,
-                costs: vec![0.0; agents],
-                dones: vec![true; agents],
-                alive: vec![true; agents],
-                bootstrap_obs: vec![0.0; agents * 3],
-                neighbour_offsets: vec![0; agents + 1],
-                lcf_features: vec![0.0; agents * lcf::FEATURES],
-                ..RolloutFragment::default()
-            };
+            let fragment = one_step_fragment(obs.clone(), 3, actions, log_probs, rewards);
             fragment.validate(Some((3, 2))).unwrap();
             learner.update(&[fragment]).unwrap();
         }

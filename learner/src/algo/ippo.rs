@@ -35,7 +35,7 @@ pub type Ippo = SharedPpo<OwnObservation>;
 #[cfg(test)]
 mod tests {
     use crate::algo::Algorithm;
-    use crate::algo::shared_ppo::testing::ippo;
+    use crate::algo::shared_ppo::testing::{ippo, one_step_fragment};
     use junction_common::config::RunConfig;
     use junction_common::fragment::RolloutFragment;
     use junction_common::policy::Policy;
@@ -55,22 +55,7 @@ mod tests {
         let rewards = (0..agents)
             .map(|i| -(actions[2 * i] - 0.5).powi(2))
             .collect();
-        RolloutFragment {
-            steps: 1,
-            agents,
-            obs_dim,
-            action_dim: 2,
-            obs,
-            actions,
-            log_probs,
-            rewards,
-            costs: vec![0.0; agents],
-            dones: vec![true; agents],
-            alive: vec![true; agents],
-            bootstrap_obs: vec![0.0; agents * obs_dim],
-            neighbour_offsets: vec![0; agents + 1],
-            ..RolloutFragment::default()
-        }
+        one_step_fragment(obs, obs_dim, actions, log_probs, rewards)
     }
 
     fn mean_action(policy: &dyn Policy) -> f32 {

@@ -503,6 +503,35 @@ pub(crate) mod testing {
             .collect()
     }
 
+    /// A one-step bandit round: every slot acts once on `obs` (rows of `obs_dim`) and is done,
+    /// with no neighbours.
+    pub fn one_step_fragment(
+        obs: Vec<f32>,
+        obs_dim: usize,
+        actions: Vec<f32>,
+        log_probs: Vec<f32>,
+        rewards: Vec<f32>,
+    ) -> RolloutFragment {
+        let agents = rewards.len();
+        RolloutFragment {
+            steps: 1,
+            agents,
+            obs_dim,
+            action_dim: 2,
+            obs,
+            actions,
+            log_probs,
+            rewards,
+            costs: vec![0.0; agents],
+            dones: vec![true; agents],
+            alive: vec![true; agents],
+            bootstrap_obs: vec![0.0; agents * obs_dim],
+            neighbour_offsets: vec![0; agents + 1],
+            lcf_features: vec![0.0; agents * lcf::FEATURES],
+            ..RolloutFragment::default()
+        }
+    }
+
     /// Gives `to` the policy and the same-named critic parameters of `from`. Two learners
     /// compared for equality start equal this way, not by seeding torch twice: its global RNG
     /// is shared with the tests running beside them.
