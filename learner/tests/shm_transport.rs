@@ -176,6 +176,22 @@ impl Sender {
 
 /// Publishes raw bytes on the fragment service (what a broken or hostile actor could send);
 /// the returned ports keep them deliverable.
+/// A client of a gRPC learner service on 127.0.0.1 feeding `ingest` (the runtime's task
+/// serves it until the runtime is dropped).
+async fn grpc_client(ingest: &Ingest) -> LearnerClient<tonic::transport::Channel> {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let service = LearnerServer::new(LearnerService::new(ingest.clone()));
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(service)
+            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
+    );
+    LearnerClient::connect(format!("http://{addr}"))
+        .await
+        .unwrap()
+}
+
 fn publish_raw(names: &Names, messages: &[Vec<u8>]) -> ActorPorts {
     let actor = connect_actor(names);
     for bytes in messages {
@@ -200,17 +216,7 @@ fn a_fragment_sent_over_grpc_and_over_shm_arrives_as_equal_values() {
     let message = fragment.clone().into_proto();
     let grpc_bytes = message.encoded_len();
     runtime.block_on(async {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let service = LearnerServer::new(LearnerService::new(learner.ingest.clone()));
-        tokio::spawn(
-            tonic::transport::Server::builder()
-                .add_service(service)
-                .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
-        );
-        let mut client = LearnerClient::connect(format!("http://{addr}"))
-            .await
-            .unwrap();
+        let mut client = grpc_client(&learner.ingest).await;
         let summary = client
             .push_rollouts(tokio_stream::iter(vec![message]))
             .await
@@ -363,17 +369,7 @@ fn a_closed_queue_accepts_nothing_over_either_transport() {
 
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let status = runtime.block_on(async {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let service = LearnerServer::new(LearnerService::new(learner.ingest.clone()));
-        tokio::spawn(
-            tonic::transport::Server::builder()
-                .add_service(service)
-                .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
-        );
-        let mut client = LearnerClient::connect(format!("http://{addr}"))
-            .await
-            .unwrap();
+        let mut client = grpc_client(&learner.ingest).await;
         client
             .push_rollouts(tokio_stream::iter(vec![fragment.clone().into_proto()]))
             .await
