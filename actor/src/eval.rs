@@ -37,10 +37,12 @@ pub struct EvalOptions {
     pub scenes: usize,
 }
 
-/// Steps `options.scenes` scenes in rounds (each scene one step per round) until at least
-/// `options.episodes` agent episodes have finished, then returns everything they produced;
-/// `on_round` sees the tally after every round (for progress output). Episodes still running
-/// at the end are not counted, so every counted episode is complete.
+/// Steps `options.scenes` scenes in rounds (each scene one step per round) until the scene
+/// episodes that have ended hold at least `options.episodes` agent episodes, then returns
+/// everything those scene episodes produced; `on_round` sees the tally after every round (for
+/// progress output). Only whole scene episodes count (what a scene does at the horizon is
+/// the scenario's `after_horizon`), so MetaDrive's per-scene-episode rates and the rates over
+/// agent episodes come from the same episodes.
 pub fn run(
     scenario: &ScenarioConfig,
     driver: &Driver,
@@ -57,22 +59,31 @@ pub fn run(
         .iter()
         .map(|s| vec![0.0; s.slots() * ACTION_DIM])
         .collect();
+    // What each scene's current scene episode has produced so far.
+    let mut running = vec![EvalTally::default(); scenes.len()];
     let dt = f64::from(scenario.decision_dt);
     let mut tally = EvalTally::default();
     while (tally.episodes.len() as u64) < options.episodes {
-        for (scene, actions) in scenes.iter_mut().zip(&mut actions) {
+        for ((scene, actions), current) in scenes.iter_mut().zip(&mut actions).zip(&mut running) {
             driver.actions(scene, actions)?;
             let result = scene.step(actions);
-            tally.scene_steps += 1;
+            current.scene_steps += 1;
             for finished in &result.finished {
-                tally.episodes.push(finished.stats);
-                tally.collisions += u64::from(finished.stats.collisions);
+                current.episodes.push(finished.stats);
+                current.collisions += u64::from(finished.stats.collisions);
             }
-            tally.collisions += result
+            current.collisions += result
                 .human_finished
                 .iter()
                 .map(|e| u64::from(e.collisions))
                 .sum::<u64>();
+            if let Some(ended) = result.scene_episode {
+                let done = std::mem::take(current);
+                tally.episodes.extend(done.episodes);
+                tally.collisions += done.collisions;
+                tally.scene_steps += done.scene_steps;
+                tally.scene_episodes.push(ended);
+            }
         }
         tally.sim_seconds = tally.scene_steps as f64 * dt;
         on_round(&tally);

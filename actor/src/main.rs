@@ -14,6 +14,7 @@ use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
 use junction_actor::session::ActorOptions;
 use junction_actor::{bench, eval, grpc, shm};
 use junction_common::auth::Token;
+use junction_common::config::{AfterHorizon, ScenarioConfig};
 use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
 use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
@@ -188,6 +189,12 @@ struct EvalArgs {
     /// Scenes simulated side by side (each agent slot of each scene is a source of episodes).
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=256))]
     scenes: u32,
+    /// What scenes do at the horizon (scenario.after_horizon) during the evaluation: finish
+    /// (MetaDrive's evaluation: respawning stops and every agent on the road drives until it
+    /// is done, so none is cut off) or reset (agents still driving end as timeouts). Only
+    /// whole scene episodes are counted either way.
+    #[arg(long, value_name = "MODE", default_value = "finish", value_parser = parse_after_horizon)]
+    after_horizon: AfterHorizon,
     /// Directory for the JSON and CSV [default: <run>/eval for a checkpoint inside a run
     /// directory, else ./eval].
     #[arg(long, value_name = "DIR")]
@@ -198,6 +205,14 @@ struct EvalArgs {
     /// Threads libtorch may use for inference.
     #[arg(long, default_value_t = 1)]
     torch_threads: i32,
+}
+
+fn parse_after_horizon(text: &str) -> Result<AfterHorizon, String> {
+    match text {
+        "finish" => Ok(AfterHorizon::Finish),
+        "reset" => Ok(AfterHorizon::Reset),
+        other => Err(format!("{other:?} is not finish or reset")),
+    }
 }
 
 /// Frames from 16 to 4096 pixels a side: GIF's own limit is 65535, but larger frames only
@@ -296,6 +311,10 @@ fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
             file.display()
         ),
     };
+    let scenario = ScenarioConfig {
+        after_horizon: args.after_horizon,
+        ..scenario
+    };
     let loaded = replay::policy_driver(&file, &scenario)?;
     let out_dir = args
         .out
@@ -346,6 +365,8 @@ fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
         scene_steps: tally.scene_steps,
         sim_seconds: tally.sim_seconds,
         collisions: tally.collisions,
+        scene_episodes: tally.scene_episodes.len() as u64,
+        after_horizon: Some(args.after_horizon),
         metrics: tally.metrics(args.seed),
         wall_s: started.elapsed().as_secs_f64(),
     };

@@ -211,6 +211,7 @@ impl RolloutWorker {
                 f.dones.extend_from_slice(&result.dones);
                 f.episodes.extend(result.finished.iter().map(|e| e.stats));
                 f.human_episodes.extend_from_slice(&result.human_finished);
+                f.scene_episodes.extend(result.scene_episode);
                 f.steps += 1;
                 f.sim_seconds += scene.config().decision_dt;
             }

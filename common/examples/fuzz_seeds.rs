@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use prost::Message;
 
-use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment};
+use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
 use junction_common::lcf;
 use junction_common::policy::GaussianPolicy;
 
@@ -58,6 +58,13 @@ fn fragment(steps: usize, agents: usize, obs_dim: usize) -> RolloutFragment {
             total_cost: 0.02,
         }],
         human_episodes: Vec::new(),
+        scene_episodes: vec![SceneEpisodeStats {
+            steps: 1000,
+            successes: 50,
+            crashes: 20,
+            out_of_road: 3,
+            timeouts: 1,
+        }],
         sim_seconds: steps as f32 * 0.1,
     }
 }

@@ -74,6 +74,7 @@ pub struct RunSection {
     pub checkpoint_every_updates: u64,
     pub keep_checkpoints: usize,
     pub stats_window_episodes: usize,
+    pub stats_window_scene_episodes: usize,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -84,8 +85,10 @@ pub struct ScenarioConfig {
     pub traffic: Traffic,
     pub agents: usize,
     pub horizon: u32,
+    pub after_horizon: AfterHorizon,
     pub agent_horizon: u32,
     pub crash_obstacle_steps: u32,
+    pub wreck_holds_slot: bool,
     pub neighbour_radius: f32,
     pub decision_dt: f32,
     pub substeps: u32,
@@ -94,8 +97,21 @@ pub struct ScenarioConfig {
     pub spawn: SpawnConfig,
     pub humans: HumanConfig,
     pub sensors: SensorConfig,
+    pub vehicle: VehicleConfig,
     pub reward: RewardConfig,
     pub cost: CostConfig,
+}
+
+/// What a scene does when it reaches `scenario.horizon` steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AfterHorizon {
+    /// Every agent still driving ends as a timeout and the scene starts afresh.
+    Reset,
+    /// MetaDrive's multi-agent episodes: no more respawns; the agents on the road drive on
+    /// until each is done (at the latest after `agent_horizon` steps of its own), then the
+    /// scene starts afresh.
+    Finish,
 }
 
 /// Traffic density (paper §4.1): presets scale the scene's reference agent count (MetaDrive's)
@@ -172,6 +188,16 @@ pub struct SpawnConfig {
     pub respawn_clear_width: f32,
     pub respawn_probability: f32,
     pub initial_speed: f32,
+}
+
+/// Limits of the vehicle model (docs/SIMULATOR.md, "Dynamics").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VehicleConfig {
+    /// Largest lateral acceleration, m/s²; 0 = none (the pure kinematic bicycle).
+    pub max_lateral_accel: f32,
+    /// Deceleration of full braking, m/s².
+    pub max_brake_decel: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -251,6 +277,19 @@ pub struct PpoConfig {
     pub init_log_std: f64,
     pub normalize_advantages: bool,
     pub normalize_observations: bool,
+    pub objective: PpoObjective,
+    pub max_importance_weight: f64,
+}
+
+/// How the PPO algorithms treat data from actors whose policy lags the learner's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PpoObjective {
+    /// The clipped ratio against the behaviour policy that produced the data.
+    Clipped,
+    /// Decoupled PPO: the clipped ratio against the policy at the update's start, each sample
+    /// weighted by the truncated importance weight of that policy over the behaviour one.
+    Decoupled,
 }
 
 /// `learner.algo = "dqn"`: double DQN over a grid of actions (defaults and their sources in
@@ -576,6 +615,9 @@ impl RunConfig {
         if p.clip <= 0.0 {
             problems.push("ppo.clip must be > 0".to_string());
         }
+        if !(p.max_importance_weight > 0.0) {
+            problems.push("ppo.max_importance_weight must be > 0".to_string());
+        }
         if p.epochs == 0 || p.minibatch_size == 0 || p.train_batch_env_steps == 0 {
             problems.push(
                 "ppo.epochs, ppo.minibatch_size and ppo.train_batch_env_steps must be > 0"
@@ -631,9 +673,15 @@ impl RunConfig {
         if self.learner.ingest_queue_fragments == 0 {
             problems.push("learner.ingest_queue_fragments must be > 0".to_string());
         }
-        if self.run.stats_window_episodes == 0 || self.run.keep_checkpoints == 0 {
-            problems
-                .push("run.stats_window_episodes and run.keep_checkpoints must be > 0".to_string());
+        if self.run.stats_window_episodes == 0
+            || self.run.stats_window_scene_episodes == 0
+            || self.run.keep_checkpoints == 0
+        {
+            problems.push(
+                "run.stats_window_episodes, run.stats_window_scene_episodes and \
+                 run.keep_checkpoints must be > 0"
+                    .to_string(),
+            );
         }
         if self.run.progress_interval_s <= 0.0 {
             problems.push("run.progress_interval_s must be > 0".to_string());
@@ -849,6 +897,16 @@ impl ScenarioConfig {
         }
         if self.horizon == 0 || self.agent_horizon == 0 {
             problems.push("scenario.horizon and scenario.agent_horizon must be > 0".to_string());
+        }
+        let v = &self.vehicle;
+        if !(v.max_lateral_accel >= 0.0 && v.max_lateral_accel.is_finite())
+            || !(v.max_brake_decel > 0.0 && v.max_brake_decel <= 20.0)
+        {
+            problems.push(
+                "scenario.vehicle.max_lateral_accel must be >= 0 (0 = no limit) and \
+                 scenario.vehicle.max_brake_decel in (0, 20] m/s²"
+                    .into(),
+            );
         }
         if !(self.decision_dt > 0.0) || self.substeps == 0 {
             problems.push("scenario.decision_dt and scenario.substeps must be > 0".to_string());

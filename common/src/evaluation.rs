@@ -7,10 +7,10 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use crate::confidence::{self, Estimate};
-use crate::fragment::{EpisodeStats, Outcome};
+use crate::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
 
 /// `format` of an eval result file; bumped when a field changes meaning.
-pub const EVAL_FORMAT: &str = "junction-eval/1";
+pub const EVAL_FORMAT: &str = "junction-eval/2";
 /// CoPO counts arrivals and failures per this many decision steps of a scene.
 pub const COPO_STEP_BLOCK: f64 = 300.0;
 
@@ -39,8 +39,11 @@ const fn metric(
 }
 
 /// Every metric, in the order of tables and CSV rows.
-pub const METRICS: [MetricDef; 13] = [
+pub const METRICS: [MetricDef; 16] = [
     metric("collision_rate", "Collision rate", "1/s", false),
+    metric("scene_success_rate", "Success rate (MetaDrive)", "", true),
+    metric("scene_crash_rate", "Crash rate (MetaDrive)", "", false),
+    metric("scene_out_of_road_rate", "Out-of-road rate (MetaDrive)", "", false),
     metric("success_rate", "Success rate", "", true),
     metric("crash_rate", "Crash rate", "", false),
     metric("out_of_road_rate", "Out-of-road rate", "", false),
@@ -69,10 +72,19 @@ pub fn metric_def(key: &str) -> Option<&'static MetricDef> {
 /// episodes; the collision rate is collisions (of agents and human drivers, as in training's
 /// `junction_learner_collisions_total`) per simulated second of scene time; accelerations are
 /// the episodes' mean and largest |longitudinal acceleration|, averaged over episodes; a
-/// failure is any episode that did not succeed (crash, out of road, timeout).
+/// failure is any episode that did not succeed (crash, out of road, timeout). The `scene_`
+/// rates are MetaDrive's (CoPO's): per scene episode the share of its agents with that
+/// outcome, their mean over scene episodes, with a Student-t interval over scene episodes
+/// (absent from evaluations made before them: `None`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvalMetrics {
     pub collision_rate: Estimate,
+    #[serde(default)]
+    pub scene_success_rate: Option<Estimate>,
+    #[serde(default)]
+    pub scene_crash_rate: Option<Estimate>,
+    #[serde(default)]
+    pub scene_out_of_road_rate: Option<Estimate>,
     pub success_rate: Estimate,
     pub crash_rate: Estimate,
     pub out_of_road_rate: Estimate,
@@ -88,28 +100,31 @@ pub struct EvalMetrics {
 }
 
 impl EvalMetrics {
-    /// Every metric with its definition, in [`METRICS`] order.
-    pub fn rows(&self) -> [(&'static MetricDef, &Estimate); 13] {
-        let values = [
-            &self.collision_rate,
-            &self.success_rate,
-            &self.crash_rate,
-            &self.out_of_road_rate,
-            &self.timeout_rate,
-            &self.accel_mean,
-            &self.accel_max,
-            &self.reward_mean,
-            &self.reward_max,
-            &self.length_mean,
-            &self.length_max,
-            &self.successes_per_300,
-            &self.failures_per_300,
+    /// Every metric this evaluation has, with its definition, in [`METRICS`] order.
+    pub fn rows(&self) -> Vec<(&'static MetricDef, &Estimate)> {
+        let values: [Option<&Estimate>; 16] = [
+            Some(&self.collision_rate),
+            self.scene_success_rate.as_ref(),
+            self.scene_crash_rate.as_ref(),
+            self.scene_out_of_road_rate.as_ref(),
+            Some(&self.success_rate),
+            Some(&self.crash_rate),
+            Some(&self.out_of_road_rate),
+            Some(&self.timeout_rate),
+            Some(&self.accel_mean),
+            Some(&self.accel_max),
+            Some(&self.reward_mean),
+            Some(&self.reward_max),
+            Some(&self.length_mean),
+            Some(&self.length_max),
+            Some(&self.successes_per_300),
+            Some(&self.failures_per_300),
         ];
-        let mut k = 0;
-        values.map(|v| {
-            k += 1;
-            (&METRICS[k - 1], v)
-        })
+        METRICS
+            .iter()
+            .zip(values)
+            .filter_map(|(def, value)| Some((def, value?)))
+            .collect()
     }
 
     pub fn get(&self, key: &str) -> Option<&Estimate> {
@@ -131,6 +146,8 @@ pub struct EvalTally {
     pub scene_steps: u64,
     /// Simulated time, summed over scenes.
     pub sim_seconds: f64,
+    /// The scene episodes the agent episodes came from.
+    pub scene_episodes: Vec<SceneEpisodeStats>,
 }
 
 impl EvalTally {
@@ -154,8 +171,15 @@ impl EvalTally {
         let blocks = self.scene_steps as f64 / COPO_STEP_BLOCK;
         let rewards = field(|e| f64::from(e.total_reward));
         let lengths = field(|e| f64::from(e.length));
+        let scene_share = |o: Outcome| {
+            let shares: Vec<f64> = self.scene_episodes.iter().map(|e| e.share(o)).collect();
+            (!shares.is_empty()).then(|| confidence::mean_t(&shares))
+        };
         EvalMetrics {
             collision_rate: confidence::poisson_rate(self.collisions, self.sim_seconds),
+            scene_success_rate: scene_share(Outcome::Success),
+            scene_crash_rate: scene_share(Outcome::Crash),
+            scene_out_of_road_rate: scene_share(Outcome::OutOfRoad),
             success_rate: confidence::wilson(successes, n),
             crash_rate: confidence::wilson(count(Outcome::Crash), n),
             out_of_road_rate: confidence::wilson(count(Outcome::OutOfRoad), n),
@@ -200,6 +224,12 @@ pub struct EvalReport {
     pub scene_steps: u64,
     pub sim_seconds: f64,
     pub collisions: u64,
+    /// Whole scene episodes evaluated, and what their scenes did at the horizon (absent
+    /// from evaluations made before scene episodes were counted).
+    #[serde(default)]
+    pub scene_episodes: u64,
+    #[serde(default)]
+    pub after_horizon: Option<crate::config::AfterHorizon>,
     pub metrics: EvalMetrics,
     /// Wall-clock seconds the evaluation took (the only field that varies between reruns).
     pub wall_s: f64,
@@ -250,7 +280,7 @@ impl EvalReport {
             .join(", ");
         let mut out = format!(
             "policy  {} (v{}{}{})\neval    {}, seed {}, {} scenes: {} episodes ({outcomes}) in {} \
-             scene steps ({:.0} s simulated)\n\n",
+             scene episodes, {} scene steps ({:.0} s simulated){}\n\n",
             self.policy,
             self.policy_version,
             if trained.is_empty() { "" } else { ": " },
@@ -259,8 +289,14 @@ impl EvalReport {
             self.seed,
             self.scenes,
             self.episodes,
+            self.scene_episodes,
             self.scene_steps,
             self.sim_seconds,
+            match self.after_horizon {
+                Some(crate::config::AfterHorizon::Finish) => ", agents finish after the horizon",
+                Some(crate::config::AfterHorizon::Reset) => ", agents cut off at the horizon",
+                None => "",
+            },
         );
         out.push_str(&format!(
             "{:<40} {:>11}  {:<27} {}\n",
@@ -335,6 +371,23 @@ mod tests {
             collisions: 2,
             scene_steps: 600,
             sim_seconds: 60.0,
+            // Not the same episodes as above: the shares are checked on their own.
+            scene_episodes: vec![
+                SceneEpisodeStats {
+                    steps: 300,
+                    successes: 1,
+                    crashes: 1,
+                    out_of_road: 0,
+                    timeouts: 0,
+                },
+                SceneEpisodeStats {
+                    steps: 300,
+                    successes: 1,
+                    crashes: 0,
+                    out_of_road: 1,
+                    timeouts: 2,
+                },
+            ],
         }
     }
 
@@ -347,6 +400,19 @@ mod tests {
         assert_eq!(m.crash_rate.value, 0.2);
         assert_eq!(m.out_of_road_rate.value, 0.2);
         assert_eq!(m.timeout_rate.value, 0.2);
+        // MetaDrive's rates: means of per-scene-episode shares, (1/2 + 1/4) / 2 for success.
+        let scene = |e: &Option<Estimate>| e.map(|e| (e.value, e.n, e.ci));
+        assert_eq!(
+            scene(&m.scene_success_rate),
+            Some((0.375, 2, CiMethod::StudentT))
+        );
+        assert_eq!(scene(&m.scene_crash_rate).map(|s| s.0), Some(0.25));
+        assert_eq!(scene(&m.scene_out_of_road_rate).map(|s| s.0), Some(0.125));
+        let without = EvalTally {
+            scene_episodes: vec![],
+            ..tally()
+        };
+        assert_eq!(without.metrics(3).scene_success_rate, None);
         assert!((m.collision_rate.value - 2.0 / 60.0).abs() < 1e-12);
         assert_eq!(m.collision_rate.ci, CiMethod::PoissonScore);
         // Means: accel (1+2+3+2+0.5)/5 = 1.7, max accel (3+5+4+6+2)/5 = 4, reward 50/5 = 10,
@@ -411,6 +477,8 @@ mod tests {
             scene_steps: 600,
             sim_seconds: 60.0,
             collisions: 2,
+            scene_episodes: 2,
+            after_horizon: Some(crate::config::AfterHorizon::Finish),
             metrics: m,
             wall_s: 0.5,
         };
@@ -418,16 +486,32 @@ mod tests {
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines.len(), 1 + METRICS.len());
         assert!(
-            lines[2].starts_with("success_rate,Success rate,,0.4,"),
+            lines[2].starts_with("scene_success_rate,Success rate (MetaDrive),,0.375,"),
             "{}",
             lines[2]
         );
-        assert!(lines[2].ends_with(",wilson,5"), "{}", lines[2]);
+        assert!(
+            lines[5].starts_with("success_rate,Success rate,,0.4,"),
+            "{}",
+            lines[5]
+        );
+        assert!(lines[5].ends_with(",wilson,5"), "{}", lines[5]);
         let table = report.to_table();
         assert!(table.contains("Success rate"), "{table}");
         assert_eq!(table.lines().count(), 4 + METRICS.len(), "{table}");
         let json = serde_json::to_string(&report).unwrap();
         let back: EvalReport = serde_json::from_str(&json).unwrap();
         assert_eq!(back, report);
+        // An evaluation from before scene episodes were counted still reads, without them.
+        let mut old: serde_json::Value = serde_json::from_str(&json).unwrap();
+        for key in ["scene_episodes", "after_horizon"] {
+            old.as_object_mut().unwrap().remove(key);
+        }
+        for key in ["scene_success_rate", "scene_crash_rate", "scene_out_of_road_rate"] {
+            old["metrics"].as_object_mut().unwrap().remove(key);
+        }
+        let old: EvalReport = serde_json::from_value(old).unwrap();
+        assert_eq!((old.scene_episodes, old.metrics.scene_success_rate), (0, None));
+        assert_eq!(old.metrics.rows().len(), METRICS.len() - 3);
     }
 }

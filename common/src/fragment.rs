@@ -69,6 +69,72 @@ pub struct EpisodeStats {
     pub total_cost: f32,
 }
 
+/// One scene episode (MetaDrive's environment episode), by the outcomes of the agent episodes
+/// that ended in it: the unit of MetaDrive's success rate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SceneEpisodeStats {
+    /// Scene steps from the reset to the end.
+    pub steps: u32,
+    pub successes: u32,
+    pub crashes: u32,
+    pub out_of_road: u32,
+    pub timeouts: u32,
+}
+
+impl SceneEpisodeStats {
+    pub fn record(&mut self, outcome: Outcome) {
+        let count = match outcome {
+            Outcome::Success => &mut self.successes,
+            Outcome::Crash => &mut self.crashes,
+            Outcome::OutOfRoad => &mut self.out_of_road,
+            Outcome::Timeout => &mut self.timeouts,
+        };
+        *count = count.saturating_add(1);
+    }
+
+    /// Agent episodes that ended in the scene episode.
+    pub fn agents(&self) -> u64 {
+        [self.successes, self.crashes, self.out_of_road, self.timeouts]
+            .iter()
+            .map(|&c| u64::from(c))
+            .sum()
+    }
+
+    /// The share of those agent episodes that ended with `outcome` (0 without any).
+    pub fn share(&self, outcome: Outcome) -> f64 {
+        let count = match outcome {
+            Outcome::Success => self.successes,
+            Outcome::Crash => self.crashes,
+            Outcome::OutOfRoad => self.out_of_road,
+            Outcome::Timeout => self.timeouts,
+        };
+        match self.agents() {
+            0 => 0.0,
+            n => f64::from(count) / n as f64,
+        }
+    }
+
+    fn from_proto(e: &proto::SceneEpisodeStats) -> Self {
+        SceneEpisodeStats {
+            steps: e.steps,
+            successes: e.successes,
+            crashes: e.crashes,
+            out_of_road: e.out_of_road,
+            timeouts: e.timeouts,
+        }
+    }
+
+    fn to_proto(self) -> proto::SceneEpisodeStats {
+        proto::SceneEpisodeStats {
+            steps: self.steps,
+            successes: self.successes,
+            crashes: self.crashes,
+            out_of_road: self.out_of_road,
+            timeouts: self.timeouts,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct RolloutFragment {
     pub actor_id: String,
@@ -94,6 +160,8 @@ pub struct RolloutFragment {
     pub episodes: Vec<EpisodeStats>,
     /// Episodes of human-driven vehicles (not trained on; counted separately).
     pub human_episodes: Vec<EpisodeStats>,
+    /// Scene episodes that ended in this fragment.
+    pub scene_episodes: Vec<SceneEpisodeStats>,
     pub sim_seconds: f32,
 }
 
@@ -326,6 +394,14 @@ impl RolloutFragment {
                 self.agents
             )));
         }
+        // A scene episode lasts at least a step.
+        if self.scene_episodes.len() > self.steps {
+            return Err(FragmentError::Invariant(format!(
+                "{} scene episodes cannot end within {} steps",
+                self.scene_episodes.len(),
+                self.steps
+            )));
+        }
         for (field, episodes) in [
             ("episodes", &self.episodes),
             ("human_episodes", &self.human_episodes),
@@ -418,6 +494,11 @@ impl RolloutFragment {
             lcf_features: msg.lcf_features,
             episodes,
             human_episodes,
+            scene_episodes: msg
+                .scene_episodes
+                .iter()
+                .map(SceneEpisodeStats::from_proto)
+                .collect(),
             sim_seconds: msg.sim_seconds,
         };
         fragment.validate(expected_dims)?;
@@ -456,6 +537,11 @@ impl RolloutFragment {
                 .human_episodes
                 .into_iter()
                 .map(EpisodeStats::to_proto)
+                .collect(),
+            scene_episodes: self
+                .scene_episodes
+                .into_iter()
+                .map(SceneEpisodeStats::to_proto)
                 .collect(),
             sim_seconds: self.sim_seconds,
         }
@@ -544,8 +630,27 @@ pub(crate) mod tests {
                 energy_kj: 3.0,
                 total_cost: 0.0,
             }],
+            scene_episodes: vec![SceneEpisodeStats {
+                steps: 1000,
+                successes: 120,
+                crashes: 70,
+                out_of_road: 9,
+                timeouts: 1,
+            }],
             sim_seconds: 0.3,
         }
+    }
+
+    #[test]
+    fn a_scene_episode_shares_its_agents_by_outcome_and_at_most_one_ends_per_step() {
+        let e = sample().scene_episodes[0];
+        assert_eq!(e.agents(), 200);
+        assert_eq!(e.share(Outcome::Success), 0.6);
+        assert_eq!(e.share(Outcome::Crash), 0.35);
+        assert_eq!(SceneEpisodeStats::default().share(Outcome::Success), 0.0);
+        let mut f = sample();
+        f.scene_episodes = vec![e; f.steps + 1];
+        assert_eq!(f.validate(None).unwrap_err().reason(), "invariant");
     }
 
     #[test]

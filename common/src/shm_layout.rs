@@ -3,7 +3,7 @@
 //! in between. A fixed header says what follows; the structure-of-arrays payload is the
 //! fragment's own arrays, copied as they are.
 //!
-//! Layout version 1. Numbers are in the host's byte order (shared memory never leaves the
+//! Layout version 2. Numbers are in the host's byte order (shared memory never leaves the
 //! host); offsets in bytes:
 //!
 //! | offset | type | field |
@@ -17,15 +17,19 @@
 //! | 32 | u64 | behaviour policy version |
 //! | 40 | u32 × 10 | steps, agents, obs_dim, action_dim, LCF features per cell, neighbour ids, episodes, human episodes, actor id bytes, scenario bytes |
 //! | 80 | f32 | simulated seconds |
-//! | 84 | u32 × 3 | reserved, 0 |
+//! | 84 | u32 | scene episodes |
+//! | 88 | u32 × 2 | reserved, 0 |
 //!
 //! Then, in this order, with `cells = steps × agents`: f32 `obs[cells × obs_dim]`,
 //! `actions[cells × action_dim]`, `log_probs[cells]`, `rewards[cells]`, `costs[cells]`,
 //! `bootstrap_obs[agents × obs_dim]`, `lcf_features[cells × features]`; u32
 //! `neighbour_offsets[cells + 1]`, `neighbour_ids[n]`; episodes and human episodes, 8 words
 //! each (outcome u32, length u32, total reward f32, mean |accel| f32, max |accel| f32,
-//! collisions u32, energy kJ f32, total cost f32); bytes `dones[cells]`, `alive[cells]` (0 or
-//! 1), the actor id and the scenario name (UTF-8); zeros up to a multiple of 8 bytes.
+//! collisions u32, energy kJ f32, total cost f32); scene episodes, 5 u32 each (steps,
+//! successes, crashes, out of road, timeouts); bytes `dones[cells]`, `alive[cells]` (0 or 1),
+//! the actor id and the scenario name (UTF-8); zeros up to a multiple of 8 bytes.
+//!
+//! Version 2 added the scene episodes (version 1 had three reserved words at offset 84).
 //!
 //! The decoder trusts nothing: it checks the magic, the version, that the header's sizes are
 //! within [`crate::fragment`]'s bounds and add up to exactly the buffer's length, that reserved
@@ -36,16 +40,19 @@
 use std::mem::MaybeUninit;
 
 use crate::fragment::{
-    EpisodeStats, FragmentError, MAX_NAME_BYTES, Outcome, RolloutFragment, flags,
+    EpisodeStats, FragmentError, MAX_NAME_BYTES, Outcome, RolloutFragment, SceneEpisodeStats,
+    flags,
 };
 use crate::lcf;
 
 pub const MAGIC: [u8; 4] = *b"JNCF";
 /// Version of this layout; a learner refuses (and counts) fragments of any other.
-pub const LAYOUT_VERSION: u32 = 1;
+pub const LAYOUT_VERSION: u32 = 2;
 pub const HEADER_BYTES: usize = 96;
 /// Words per episode record.
 const EPISODE_WORDS: usize = 8;
+/// Words per scene-episode record.
+const SCENE_EPISODE_WORDS: usize = 5;
 
 /// Why a buffer was refused; [`LayoutError::reason`] is the bounded label used in metrics.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -86,6 +93,7 @@ struct Counts {
     human_episodes: usize,
     actor_id_bytes: usize,
     scenario_bytes: usize,
+    scene_episodes: usize,
 }
 
 impl Counts {
@@ -101,6 +109,7 @@ impl Counts {
             human_episodes: f.human_episodes.len(),
             actor_id_bytes: f.actor_id.len(),
             scenario_bytes: f.scenario.len(),
+            scene_episodes: f.scene_episodes.len(),
         }
     }
 
@@ -117,6 +126,7 @@ impl Counts {
             self.neighbour_ids,
             self.episodes.checked_mul(EPISODE_WORDS)?,
             self.human_episodes.checked_mul(EPISODE_WORDS)?,
+            self.scene_episodes.checked_mul(SCENE_EPISODE_WORDS)?,
         ]
         .into_iter()
         .try_fold(0usize, usize::checked_add)?;
@@ -167,6 +177,7 @@ pub fn capacity_hint(steps: usize, agents: usize, obs_dim: usize, action_dim: us
         human_episodes: 0,
         actor_id_bytes: 64,
         scenario_bytes: 64,
+        scene_episodes: 1,
     }
     .total_bytes()
     .unwrap_or(0)
@@ -214,7 +225,10 @@ pub fn encode_into(
         })?);
     }
     w.bytes(&fragment.sim_seconds.to_ne_bytes());
-    w.bytes(&[0; 12]);
+    w.u32(u32::try_from(counts.scene_episodes).map_err(|_| {
+        FragmentError::Shape("too many scene episodes for the header".into())
+    })?);
+    w.bytes(&[0; 8]);
     for values in [
         &fragment.obs,
         &fragment.actions,
@@ -237,6 +251,11 @@ pub fn encode_into(
         w.u32(e.collisions);
         for v in [e.energy_kj, e.total_cost] {
             w.bytes(&v.to_ne_bytes());
+        }
+    }
+    for e in &fragment.scene_episodes {
+        for v in [e.steps, e.successes, e.crashes, e.out_of_road, e.timeouts] {
+            w.u32(v);
         }
     }
     w.bytes(bytemuck::cast_slice(&fragment.dones));
@@ -322,7 +341,7 @@ pub fn decode(
     let sequence = r.u64()?;
     let behaviour_version = r.u64()?;
     let mut count = || r.u32().map(|v| v as usize);
-    let counts = Counts {
+    let mut counts = Counts {
         steps: count()?,
         agents: count()?,
         obs_dim: count()?,
@@ -333,9 +352,11 @@ pub fn decode(
         human_episodes: count()?,
         actor_id_bytes: count()?,
         scenario_bytes: count()?,
+        scene_episodes: 0,
     };
     let sim_seconds = r.f32()?;
-    if reserved != 0 || r.take(12)?.iter().any(|&b| b != 0) {
+    counts.scene_episodes = r.u32()? as usize;
+    if reserved != 0 || r.take(8)?.iter().any(|&b| b != 0) {
         return malformed("reserved header bytes must be 0".into());
     }
     // The dimensions' bounds first, so no size computed below can be absurd.
@@ -378,6 +399,7 @@ pub fn decode(
     let neighbour_ids = r.u32s(counts.neighbour_ids)?;
     let episodes = r.episodes(counts.episodes)?;
     let human_episodes = r.episodes(counts.human_episodes)?;
+    let scene_episodes = r.scene_episodes(counts.scene_episodes)?;
     let dones = flags("dones", r.take(cells)?)?;
     let alive = flags("alive", r.take(cells)?)?;
     let actor_id = r.text("actor id", counts.actor_id_bytes)?;
@@ -407,6 +429,7 @@ pub fn decode(
         lcf_features,
         episodes,
         human_episodes,
+        scene_episodes,
         sim_seconds,
     };
     fragment.validate(expected_dims)?;
@@ -489,6 +512,20 @@ impl<'a> Reader<'a> {
             .collect()
     }
 
+    fn scene_episodes(&mut self, n: usize) -> Result<Vec<SceneEpisodeStats>, LayoutError> {
+        (0..n)
+            .map(|_| {
+                Ok(SceneEpisodeStats {
+                    steps: self.u32()?,
+                    successes: self.u32()?,
+                    crashes: self.u32()?,
+                    out_of_road: self.u32()?,
+                    timeouts: self.u32()?,
+                })
+            })
+            .collect()
+    }
+
     fn text(&mut self, what: &str, n: usize) -> Result<String, LayoutError> {
         std::str::from_utf8(self.take(n)?)
             .map(str::to_string)
@@ -548,14 +585,17 @@ mod tests {
     #[test]
     fn other_versions_and_foreign_bytes_are_refused() {
         let mut bytes = encode(&sample()).unwrap();
-        put_u32(&mut bytes, 4, 2);
-        assert_eq!(
-            decode(&bytes, None).unwrap_err(),
-            LayoutError::Version {
-                got: 2,
-                expected: LAYOUT_VERSION
-            }
-        );
+        // Version 1 (before scene episodes) and any other are refused, not misread.
+        for other in [1, LAYOUT_VERSION + 1] {
+            put_u32(&mut bytes, 4, other);
+            assert_eq!(
+                decode(&bytes, None).unwrap_err(),
+                LayoutError::Version {
+                    got: other,
+                    expected: LAYOUT_VERSION
+                }
+            );
+        }
         let mut bytes = encode(&sample()).unwrap();
         bytes[0] = b'X';
         assert_eq!(decode(&bytes, None).unwrap_err().reason(), "decode");
@@ -617,7 +657,8 @@ mod tests {
                 + cells
                 + 1
                 + fragment.neighbour_ids.len()
-                + 8 * 2)
+                + 8 * 2
+                + 5 * fragment.scene_episodes.len())
             + 2 * cells
             + text;
         assert_eq!(len, unpadded.next_multiple_of(8));
@@ -631,7 +672,7 @@ mod tests {
         let mut bytes = encode(&fragment).unwrap();
         bytes[unpadded - text] = 0xff; // the actor id is no longer UTF-8
         assert_eq!(decode(&bytes, None).unwrap_err().reason(), "decode");
-        let episodes = dones - 4 * 8 * 2;
+        let episodes = dones - 4 * (8 * 2 + 5);
         let mut bytes = encode(&fragment).unwrap();
         put_u32(&mut bytes, episodes, 9); // unknown outcome
         assert_eq!(decode(&bytes, None).unwrap_err().reason(), "invariant");

@@ -40,6 +40,11 @@ pub mod names {
     pub const LEARNER_COLLISIONS: &str = "junction_learner_collisions_total";
     pub const LEARNER_SIMULATED_SECONDS: &str = "junction_learner_simulated_seconds_total";
     pub const LEARNER_POLICY_LAG: &str = "junction_learner_policy_lag_versions";
+    pub const LEARNER_TRAINED_POLICY_LAG: &str = "junction_learner_trained_policy_lag_versions";
+    pub const LEARNER_SCENE_EPISODES: &str = "junction_learner_scene_episodes_total";
+    pub const LEARNER_SCENE_SUCCESS_RATE: &str = "junction_learner_scene_success_rate";
+    pub const LEARNER_SCENE_CRASH_RATE: &str = "junction_learner_scene_crash_rate";
+    pub const LEARNER_SCENE_OUT_OF_ROAD_RATE: &str = "junction_learner_scene_out_of_road_rate";
     pub const LEARNER_LEARNING_RATE: &str = "junction_learner_learning_rate";
     pub const LEARNER_LAGRANGE_MULTIPLIER: &str = "junction_learner_lagrange_multiplier";
     pub const LEARNER_LCF_MEAN: &str = "junction_learner_lcf_mean_degrees";

@@ -9,7 +9,7 @@ use std::sync::LazyLock;
 
 use libfuzzer_sys::fuzz_target;
 
-use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment};
+use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
 use junction_common::{lcf, shm_layout};
 
 /// 3 steps × 2 slots: slot 0's agent finishes at step 1 and a new one takes the slot.
@@ -47,6 +47,13 @@ static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
             total_cost: 0.125,
         }],
         human_episodes: Vec::new(),
+        scene_episodes: vec![SceneEpisodeStats {
+            steps: 1000,
+            successes: 120,
+            crashes: 70,
+            out_of_road: 9,
+            timeouts: 1,
+        }],
         sim_seconds: 0.3,
     };
     shm_layout::encode(&fragment).expect("a valid fragment encodes")

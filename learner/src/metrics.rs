@@ -11,7 +11,7 @@ use junction_common::fragment::{FragmentError, Outcome, RolloutFragment};
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 
 use crate::algo::{Stage, UpdateStats};
-use crate::stats::WindowSummary;
+use crate::stats::{SceneWindowSummary, WindowSummary};
 
 /// `reason` of fragments refused before validation: undecodable bytes, or another scenario.
 pub const REJECT_DECODE: &str = "decode";
@@ -53,6 +53,11 @@ pub struct LearnerMetrics {
     pub episodes: IntCounterVec,
     human_episodes: IntCounterVec,
     pub policy_lag: Histogram,
+    trained_policy_lag: Histogram,
+    scene_episodes: IntCounterVec,
+    scene_success_rate: GaugeVec,
+    scene_crash_rate: GaugeVec,
+    scene_out_of_road_rate: GaugeVec,
     collisions: IntCounterVec,
     simulated_seconds: CounterVec,
     success_rate: GaugeVec,
@@ -130,6 +135,14 @@ impl LearnerMetrics {
             .buckets(vec![0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0]),
         )?;
         registry.register(Box::new(policy_lag.clone()))?;
+        let trained_policy_lag = Histogram::with_opts(
+            HistogramOpts::new(
+                names::LEARNER_TRAINED_POLICY_LAG,
+                "Policy versions between a fragment's behaviour policy and the policy an update starts from, per fragment trained on (what the PPO ratio has to correct).",
+            )
+            .buckets(vec![0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0]),
+        )?;
+        registry.register(Box::new(trained_policy_lag.clone()))?;
         let simulated_seconds = CounterVec::new(
             Opts::new(
                 names::LEARNER_SIMULATED_SECONDS,
@@ -259,6 +272,24 @@ impl LearnerMetrics {
             )?,
             simulated_seconds,
             policy_lag,
+            trained_policy_lag,
+            scene_episodes: counter_vec(
+                names::LEARNER_SCENE_EPISODES,
+                "Scene episodes (MetaDrive's environment episodes: reset to reset) that ended, by scenario.",
+                &["scenario"],
+            )?,
+            scene_success_rate: scenario_gauge(
+                names::LEARNER_SCENE_SUCCESS_RATE,
+                "MetaDrive's success rate: per scene episode the share of its agents that arrived, averaged over the last run.stats_window_scene_episodes scene episodes.",
+            )?,
+            scene_crash_rate: scenario_gauge(
+                names::LEARNER_SCENE_CRASH_RATE,
+                "MetaDrive's crash rate: per scene episode the share of its agents that crashed, averaged over the scene-episode window.",
+            )?,
+            scene_out_of_road_rate: scenario_gauge(
+                names::LEARNER_SCENE_OUT_OF_ROAD_RATE,
+                "MetaDrive's out-of-road rate: per scene episode the share of its agents that left the road, averaged over the scene-episode window.",
+            )?,
             learning_rate: gauge(
                 names::LEARNER_LEARNING_RATE,
                 "Optimiser step size of the last update.",
@@ -351,6 +382,7 @@ impl LearnerMetrics {
         }
         self.collisions.with_label_values(&[scenario]);
         self.simulated_seconds.with_label_values(&[scenario]);
+        self.scene_episodes.with_label_values(&[scenario]);
         for bucket in NEIGHBOUR_BUCKETS {
             self.lcf_phi.with_label_values(&[bucket]);
         }
@@ -371,6 +403,9 @@ impl LearnerMetrics {
         self.collisions
             .with_label_values(&[scenario])
             .inc_by(fragment.collisions());
+        self.scene_episodes
+            .with_label_values(&[scenario])
+            .inc_by(fragment.scene_episodes.len() as u64);
         self.simulated_seconds
             .with_label_values(&[scenario])
             .inc_by(f64::from(fragment.sim_seconds));
@@ -393,6 +428,13 @@ impl LearnerMetrics {
             .iter()
             .map(|&r| (r, self.agent_steps_dropped.with_label_values(&[r]).get()))
             .collect()
+    }
+
+    /// Lags, in policy versions, of the fragments an update trained on.
+    pub fn record_trained_lags(&self, lags: &[u64]) {
+        for &lag in lags {
+            self.trained_policy_lag.observe(lag as f64);
+        }
     }
 
     pub fn record_update(&self, stats: &UpdateStats, seconds: f64) {
@@ -426,6 +468,16 @@ impl LearnerMetrics {
     pub fn record_stage(&self, stage: Stage) {
         self.curriculum_stage.set(stage.index as i64);
         self.curriculum_agents.set(stage.agents as i64);
+    }
+
+    pub fn record_scene_window(&self, scenario: &str, summary: &SceneWindowSummary) {
+        for (gauge, rate) in [
+            (&self.scene_success_rate, summary.success_rate),
+            (&self.scene_crash_rate, summary.crash_rate),
+            (&self.scene_out_of_road_rate, summary.out_of_road_rate),
+        ] {
+            gauge.with_label_values(&[scenario]).set(rate);
+        }
     }
 
     pub fn record_window(&self, scenario: &str, summary: &WindowSummary) {

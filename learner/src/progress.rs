@@ -14,6 +14,8 @@
 //! | `lcf` | after the first update of this process: the LCF angle φ of the newest batch, `mean_deg`, `std_deg` and `phi_deg_by_neighbours` (mean φ per neighbour-count bucket "0", "1-2", "3-5", "6+"; a bucket keeps its last value while batches have no agent in it) |
 //! | `accepted_agent_steps`, `dropped_agent_steps` | agent-steps this process accepted, and those it dropped by reason (`stale`, `shutdown`, `update_failed`): the rest were trained on |
 //! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
+//! | `scene_window.*` | MetaDrive's (CoPO's) rates over the last `run.stats_window_scene_episodes` scene episodes: per scene episode the share of its agents with that outcome, averaged: `scene_episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_agents` (agent episodes per scene episode), `mean_steps` |
+//! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, and the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions) |
 //!
 //! Fields are only ever added: every reader takes a missing field as its default.
 
@@ -21,7 +23,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::stats::WindowSummary;
+use crate::stats::{SceneWindowSummary, WindowSummary};
 
 /// One line of `progress.jsonl` (written by the trainer, read by `learner report`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -46,7 +48,27 @@ pub struct ProgressLine {
     pub accepted_agent_steps: u64,
     pub dropped_agent_steps: BTreeMap<String, u64>,
     pub window: WindowSummary,
+    pub scene_window: SceneWindowSummary,
     pub lcf: Option<LcfProgress>,
+    pub update: Option<UpdateProgress>,
+}
+
+/// Diagnostics of the newest update (means over its minibatches).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct UpdateProgress {
+    pub policy_loss: f64,
+    pub value_loss: f64,
+    pub entropy: f64,
+    pub approx_kl: f64,
+    pub clip_fraction: f64,
+    pub explained_variance: f64,
+    pub grad_norm: f64,
+    pub learning_rate: f64,
+    /// Policy versions between the behaviour policies of the fragments trained on and the
+    /// policy the update started from.
+    pub lag_mean: f64,
+    pub lag_max: u64,
 }
 
 /// The learned (or fixed) LCF angle of the newest update, degrees.

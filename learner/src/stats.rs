@@ -2,7 +2,7 @@
 
 use std::collections::VecDeque;
 
-use junction_common::fragment::{EpisodeStats, Outcome};
+use junction_common::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
 
 /// The newest `capacity` agent episodes, and the fragments that delivered them (for the
 /// collision rate, which needs the simulated time those episodes came from).
@@ -133,6 +133,68 @@ impl EpisodeWindow {
     }
 }
 
+/// The newest `capacity` scene episodes: MetaDrive's (and CoPO's) success rate is the mean,
+/// over environment episodes, of the share of the episode's agents that arrived.
+pub struct SceneEpisodeWindow {
+    capacity: usize,
+    episodes: VecDeque<SceneEpisodeStats>,
+}
+
+/// Aggregates of the scene episodes in the window: each rate is the mean over scene episodes
+/// of that outcome's share of the episode's agents (MetaDrive's definition). Serialised as
+/// the `scene_window` object of `progress.jsonl` lines: add fields, never rename them.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct SceneWindowSummary {
+    pub scene_episodes: usize,
+    pub success_rate: f64,
+    pub crash_rate: f64,
+    pub out_of_road_rate: f64,
+    pub timeout_rate: f64,
+    /// Mean agent episodes per scene episode.
+    pub mean_agents: f64,
+    /// Mean scene steps per scene episode.
+    pub mean_steps: f64,
+}
+
+impl SceneEpisodeWindow {
+    pub fn new(capacity: usize) -> Self {
+        SceneEpisodeWindow {
+            capacity: capacity.max(1),
+            episodes: VecDeque::with_capacity(capacity),
+        }
+    }
+
+    pub fn record(&mut self, episodes: &[SceneEpisodeStats]) {
+        // Scene episodes without agents say nothing about the policy.
+        for episode in episodes.iter().filter(|e| e.agents() > 0) {
+            if self.episodes.len() == self.capacity {
+                self.episodes.pop_front();
+            }
+            self.episodes.push_back(*episode);
+        }
+    }
+
+    pub fn summary(&self) -> SceneWindowSummary {
+        let n = self.episodes.len();
+        if n == 0 {
+            return SceneWindowSummary::default();
+        }
+        let mean = |f: &dyn Fn(&SceneEpisodeStats) -> f64| {
+            self.episodes.iter().map(f).sum::<f64>() / n as f64
+        };
+        SceneWindowSummary {
+            scene_episodes: n,
+            success_rate: mean(&|e| e.share(Outcome::Success)),
+            crash_rate: mean(&|e| e.share(Outcome::Crash)),
+            out_of_road_rate: mean(&|e| e.share(Outcome::OutOfRoad)),
+            timeout_rate: mean(&|e| e.share(Outcome::Timeout)),
+            mean_agents: mean(&|e| e.agents() as f64),
+            mean_steps: mean(&|e| f64::from(e.steps)),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -209,6 +271,28 @@ mod tests {
         assert_eq!(w.summary().sim_seconds, 20.0);
         let empty = EpisodeWindow::new(2);
         assert_eq!(empty.summary().collisions_per_s, 0.0);
+    }
+
+    #[test]
+    fn scene_rates_are_means_of_per_episode_shares_over_the_newest_episodes() {
+        let scene = |successes, crashes, timeouts| SceneEpisodeStats {
+            steps: 1000,
+            successes,
+            crashes,
+            out_of_road: 0,
+            timeouts,
+        };
+        let mut w = SceneEpisodeWindow::new(2);
+        w.record(&[scene(0, 10, 0)]); // pushed out by the two below
+        w.record(&[scene(3, 1, 0), scene(0, 0, 0), scene(10, 30, 60)]);
+        let s = w.summary();
+        assert_eq!(s.scene_episodes, 2, "the empty episode is not counted");
+        // (3/4 + 10/100) / 2: a mean of shares, not 13/104 pooled.
+        assert!((s.success_rate - 0.425).abs() < 1e-12, "{}", s.success_rate);
+        assert!((s.crash_rate - 0.275).abs() < 1e-12);
+        assert!((s.timeout_rate - 0.3).abs() < 1e-12);
+        assert_eq!((s.mean_agents, s.mean_steps), (52.0, 1000.0));
+        assert_eq!(SceneEpisodeWindow::new(5).summary(), SceneWindowSummary::default());
     }
 
     #[test]

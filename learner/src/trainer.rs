@@ -21,9 +21,9 @@ use junction_common::weights;
 use crate::algo::{Algorithm, Stage, UpdateStats};
 use crate::checkpoint::{CheckpointMeta, Checkpointer};
 use crate::metrics::{DROP_SHUTDOWN, DROP_STALE, DROP_UPDATE_FAILED};
-use crate::progress::{LcfProgress, ProgressLine};
+use crate::progress::{LcfProgress, ProgressLine, UpdateProgress};
 use crate::server::Shared;
-use crate::stats::EpisodeWindow;
+use crate::stats::{EpisodeWindow, SceneEpisodeWindow};
 
 /// How long the loop waits for a fragment before it checks budget, progress and stop requests.
 const POLL: Duration = Duration::from_millis(200);
@@ -93,6 +93,10 @@ struct Reporter {
     sim_seconds: f64,
     /// The LCF angle after the newest update (none yet in this process).
     lcf: Option<LcfSnapshot>,
+    /// The newest update's diagnostics (none yet in this process).
+    update: Option<UpdateProgress>,
+    /// MetaDrive's unit: whole scene episodes.
+    scenes: SceneEpisodeWindow,
     last: Instant,
     last_agent_steps: u64,
     started: Instant,
@@ -113,6 +117,8 @@ impl Trainer {
             collisions: 0,
             sim_seconds: 0.0,
             lcf: None,
+            update: None,
+            scenes: SceneEpisodeWindow::new(config.run.stats_window_scene_episodes),
             last: started,
             last_agent_steps: self.progress.agent_steps,
             started,
@@ -174,8 +180,9 @@ impl Trainer {
                 Err(_) => {}
             }
             if pending_env_steps >= config.train_batch_env_steps() {
-                if let Some(stats) = self.update(&pending)? {
+                if let Some((stats, update)) = self.update(&pending)? {
                     reporter.lcf.get_or_insert_default().record(&stats);
+                    reporter.update = Some(update);
                 }
                 pending.clear();
                 pending_env_steps = 0;
@@ -241,14 +248,22 @@ impl Trainer {
         reporter.collisions += collisions;
         reporter.sim_seconds += sim_seconds;
         window.record(&fragment.episodes, collisions, sim_seconds);
+        reporter.scenes.record(&fragment.scene_episodes);
         self.shared
             .metrics
             .record_fragment(&self.shared.config.scenario.name, fragment);
     }
 
     /// One update on `batch`; its statistics, or none when it was skipped.
-    fn update(&mut self, batch: &[RolloutFragment]) -> anyhow::Result<Option<UpdateStats>> {
+    fn update(
+        &mut self,
+        batch: &[RolloutFragment],
+    ) -> anyhow::Result<Option<(UpdateStats, UpdateProgress)>> {
         let _span = tracing::info_span!("update", version = self.progress.version + 1).entered();
+        let lags: Vec<u64> = batch
+            .iter()
+            .map(|f| self.progress.version.abs_diff(f.behaviour_version))
+            .collect();
         let started = Instant::now();
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
@@ -269,6 +284,7 @@ impl Trainer {
         self.progress.updates += 1;
         self.progress.samples_trained += stats.samples_trained as u64;
         self.shared.metrics.record_update(&stats, seconds);
+        self.shared.metrics.record_trained_lags(&lags);
         self.advance_stage();
         let message = weights_message(
             self.algorithm.as_ref(),
@@ -286,7 +302,19 @@ impl Trainer {
         if every > 0 && self.progress.updates.is_multiple_of(every) {
             self.checkpoint()?;
         }
-        Ok(Some(stats))
+        let progress = UpdateProgress {
+            policy_loss: stats.policy_loss,
+            value_loss: stats.value_loss,
+            entropy: stats.entropy,
+            approx_kl: stats.approx_kl,
+            clip_fraction: stats.clip_fraction,
+            explained_variance: stats.explained_variance,
+            grad_norm: stats.grad_norm,
+            learning_rate: stats.learning_rate,
+            lag_mean: lags.iter().sum::<u64>() as f64 / lags.len().max(1) as f64,
+            lag_max: lags.iter().copied().max().unwrap_or(0),
+        };
+        Ok(Some((stats, progress)))
     }
 
     /// Moves to the curriculum stage the consumed agent-steps call for, before a broadcast.
@@ -345,13 +373,16 @@ impl Trainer {
         reporter.last = now;
         reporter.last_agent_steps = self.progress.agent_steps;
         let summary = window.summary();
+        let scenes = reporter.scenes.summary();
         let scenario = &self.shared.config.scenario.name;
         self.shared.metrics.record_window(scenario, &summary);
+        self.shared.metrics.record_scene_window(scenario, &scenes);
         let actors = self.shared.metrics.connected_actors.get();
         tracing::info!(
             version = self.progress.version,
             agent_steps_per_s = format!("{rate:.0}"),
             success = format!("{:.3}", summary.success_rate),
+            success_md = format!("{:.3}", scenes.success_rate),
             crash = format!("{:.3}", summary.crash_rate),
             out_of_road = format!("{:.3}", summary.out_of_road_rate),
             episode_reward = format!("{:.2}", summary.mean_reward),
@@ -389,7 +420,9 @@ impl Trainer {
                 .map(|(reason, steps)| (reason.to_string(), steps))
                 .collect(),
             window: summary,
+            scene_window: scenes,
             lcf: reporter.lcf.as_ref().map(LcfSnapshot::to_progress),
+            update: reporter.update.clone(),
         };
         let line = serde_json::to_string(&line).context("encoding a progress line")?;
         let mut file = OpenOptions::new()

@@ -37,6 +37,7 @@ fn valid_fragment() -> proto::RolloutFragment {
         lcf_features: vec![0.5; steps * agents * lcf::FEATURES],
         episodes: vec![],
         human_episodes: vec![],
+        scene_episodes: vec![],
         sim_seconds: 0.2,
     }
 }

@@ -15,7 +15,7 @@ use junction_common::config::HumanConfig;
 use super::autopilot::{bend_speed, route_point};
 use super::network::RoadNetwork;
 use super::scene::Car;
-use super::vehicle::{LENGTH, MASS, MAX_BRAKE_FORCE, MAX_ENGINE_FORCE, MAX_STEER_RAD, WHEELBASE};
+use super::vehicle::{LENGTH, MASS, MAX_ENGINE_FORCE, MAX_STEER_RAD, WHEELBASE};
 
 /// Bodies farther ahead than this do not constrain the driver.
 const LOOKAHEAD: f32 = 60.0;
@@ -107,7 +107,7 @@ pub fn drive(
     let throttle = if accel >= 0.0 {
         accel * MASS / MAX_ENGINE_FORCE
     } else {
-        accel * MASS / MAX_BRAKE_FORCE
+        accel / car.kin.dynamics.max_brake_decel
     };
     [steer, throttle.clamp(-1.0, 1.0)]
 }

@@ -9,8 +9,8 @@ use rand::seq::index::sample;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::{ScenarioConfig, SceneKind};
-use junction_common::fragment::{EpisodeStats, Outcome};
+use junction_common::config::{AfterHorizon, ScenarioConfig, SceneKind};
+use junction_common::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
 use junction_common::lcf;
 use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
 
@@ -24,7 +24,7 @@ use super::network::{Entry, RoadNetwork};
 use super::observation::{self, RoutePosition};
 use super::reward::{self, StepFacts};
 use super::roundabout::Roundabout;
-use super::vehicle::{BOUNDING_RADIUS, Kinematics, LENGTH, WIDTH};
+use super::vehicle::{BOUNDING_RADIUS, Dynamics, Kinematics, LENGTH, WIDTH};
 
 /// A destination counts as reached within this distance of its lane's end (MetaDrive: 5 m).
 const ARRIVAL_TOLERANCE: f32 = 5.0;
@@ -55,6 +55,9 @@ pub(super) struct Car {
 struct Obstacle {
     kin: Kinematics,
     steps_left: u32,
+    /// The slot the car drove in (kept empty while the wreck stands, with
+    /// `scenario.wreck_holds_slot`).
+    slot: usize,
 }
 
 /// An episode that ended in `step`, in slot `slot`.
@@ -78,6 +81,8 @@ pub struct StepResult {
     pub collisions: u32,
     /// Episodes of human-driven vehicles that ended this step (reward 0: they do not learn).
     pub human_finished: Vec<EpisodeStats>,
+    /// The scene episode that ended with this step (the scene has started afresh), if one did.
+    pub scene_episode: Option<SceneEpisodeStats>,
 }
 
 /// A body, for rendering and tests.
@@ -116,6 +121,8 @@ pub struct Scene {
     agents: usize,
     obstacles: Vec<Obstacle>,
     steps: u32,
+    /// Outcomes of the agent episodes of the current scene episode so far.
+    episode: SceneEpisodeStats,
     /// Every spawn point: (entry index, distance along the entry lane).
     spawn_points: Vec<(usize, f32)>,
     observations: Vec<f32>,
@@ -179,6 +186,7 @@ impl Scene {
             agents: slots,
             obstacles: Vec::new(),
             steps: 0,
+            episode: SceneEpisodeStats::default(),
             spawn_points,
             observations: vec![0.0; slots * config.obs_dim()],
             alive: vec![false; slots],
@@ -273,6 +281,7 @@ impl Scene {
         self.result.dones.fill(false);
         self.result.finished.clear();
         self.result.human_finished.clear();
+        self.result.scene_episode = None;
         self.result.collisions = 0;
         let dt = self.config.decision_dt;
         self.plan_human_drivers();
@@ -306,7 +315,8 @@ impl Scene {
         self.detect_collisions();
 
         // Outcomes, rewards, costs.
-        let horizon_reached = self.steps + 1 >= self.config.horizon;
+        let horizon_cuts =
+            self.config.after_horizon == AfterHorizon::Reset && self.steps + 1 >= self.config.horizon;
         for slot in 0..self.cars.len() {
             let Some(car) = self.cars[slot].as_mut() else {
                 continue;
@@ -325,7 +335,7 @@ impl Scene {
                 Some(Outcome::OutOfRoad)
             } else if on_final_lane && car.s >= lane.length() - ARRIVAL_TOLERANCE {
                 Some(Outcome::Success)
-            } else if car.age >= self.config.agent_horizon || horizon_reached {
+            } else if car.age >= self.config.agent_horizon || horizon_cuts {
                 Some(Outcome::Timeout)
             } else {
                 None
@@ -373,6 +383,7 @@ impl Scene {
                 if human {
                     self.result.human_finished.push(stats);
                 } else {
+                    self.episode.record(outcome);
                     self.result.dones[slot] = true;
                     self.result.finished.push(FinishedEpisode {
                         slot,
@@ -384,6 +395,7 @@ impl Scene {
                     self.obstacles.push(Obstacle {
                         kin: car.kin,
                         steps_left: self.config.crash_obstacle_steps,
+                        slot,
                     });
                 }
                 self.cars[slot] = None;
@@ -391,10 +403,17 @@ impl Scene {
         }
 
         self.steps += 1;
-        if self.steps >= self.config.horizon {
+        self.episode.steps = self.steps;
+        let agents_left = self.cars[..agents].iter().any(Option::is_some);
+        let episode_over = self.steps >= self.config.horizon
+            && (self.config.after_horizon == AfterHorizon::Reset || !agents_left);
+        if episode_over {
+            self.result.scene_episode = Some(std::mem::take(&mut self.episode));
             self.reset();
         } else {
-            self.respawn();
+            if self.steps < self.config.horizon {
+                self.respawn();
+            }
             self.refresh();
         }
         &self.result
@@ -403,6 +422,7 @@ impl Scene {
     /// Clears the road and spawns `agents` cars on distinct spawn points.
     fn reset(&mut self) {
         self.steps = 0;
+        self.episode = SceneEpisodeStats::default();
         self.obstacles.clear();
         self.cars.iter_mut().for_each(|c| *c = None);
         let chosen = sample(&mut self.rng, self.spawn_points.len(), self.cars.len());
@@ -419,7 +439,7 @@ impl Scene {
         let spacing = self.config.spawn.slot_spacing;
         let probability = self.config.respawn_probability();
         for slot in 0..self.cars.len() {
-            if self.cars[slot].is_some() {
+            if self.cars[slot].is_some() || self.wreck_holds(slot) {
                 continue;
             }
             // Drawn only for rates below 1, so the default keeps its random sequence.
@@ -435,6 +455,11 @@ impl Scene {
             let entry = free[self.rng.gen_range(0..free.len())];
             self.cars[slot] = Some(self.spawn_car(entry, spacing / 2.0));
         }
+    }
+
+    /// The wreck of the slot's last car still stands and keeps the slot empty.
+    fn wreck_holds(&self, slot: usize) -> bool {
+        self.config.wreck_holds_slot && self.obstacles.iter().any(|o| o.slot == slot)
     }
 
     fn spawn_point_clear(&self, entry: usize, s: f32) -> bool {
@@ -464,8 +489,9 @@ impl Scene {
         let lane = &self.network.lanes()[*lane];
         let heading = lane.heading(along);
         let position = lane.point(along) + Vec2::from_angle(heading).perp() * across;
+        let dynamics = Dynamics::from(&self.config.vehicle);
         let mut car = Car {
-            kin: Kinematics::new(position, heading, spawn.initial_speed),
+            kin: Kinematics::new(position, heading, spawn.initial_speed).with_dynamics(dynamics),
             route,
             lane_index: 0,
             s: 0.0,
@@ -665,7 +691,8 @@ impl Scene {
         let mut car = self.spawn_car(0, 0.0);
         car.route = route;
         car.lane_index = 0;
-        car.kin = Kinematics::new(position, heading + heading_offset, speed);
+        car.kin = Kinematics::new(position, heading + heading_offset, speed)
+            .with_dynamics(car.kin.dynamics);
         track_route(&mut car, self.network.as_ref());
         car.progress = progress;
         self.cars[slot] = Some(car);

@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 
 use std::f32::consts::PI;
 
-use junction_common::config::{Manoeuvre, ScenarioConfig, Traffic};
+use junction_common::config::{AfterHorizon, Manoeuvre, ScenarioConfig, Traffic};
 use junction_common::fragment::Outcome;
 use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
@@ -451,6 +451,113 @@ fn the_scene_horizon_ends_every_agent_as_a_timeout_and_resets() {
         10,
         "a fresh scene"
     );
+}
+
+#[test]
+fn a_reset_scene_reports_its_scene_episode_by_outcome() {
+    let mut cfg = config(10);
+    cfg.horizon = 20;
+    let mut scene = Scene::new(&cfg, 7).unwrap();
+    let stopped = [0.0, -1.0].repeat(10);
+    for _ in 0..19 {
+        assert_eq!(scene.step(&stopped).scene_episode, None);
+    }
+    let ended = scene.step(&stopped).scene_episode.expect("the horizon ends it");
+    assert_eq!((ended.steps, ended.timeouts, ended.agents()), (20, 10, 10));
+}
+
+#[test]
+fn after_the_horizon_a_finishing_scene_stops_respawning_and_lets_agents_drive_on() {
+    let mut cfg = config(10);
+    cfg.horizon = 30;
+    cfg.after_horizon = AfterHorizon::Finish;
+    let mut scene = Scene::new(&cfg, 7).unwrap();
+    let mut outcomes = HashMap::new();
+    let mut steps = 0u32;
+    let mut actions = vec![0.0; 10 * ACTION_DIM];
+    let mut last_live = 10;
+    let ended = loop {
+        autopilot_actions(&scene, 8.0, &mut actions);
+        let result = scene.step(&actions).clone();
+        steps += 1;
+        for e in &result.finished {
+            *outcomes.entry(e.stats.outcome).or_insert(0u32) += 1;
+            assert!(
+                !(e.stats.outcome == Outcome::Timeout && e.stats.length < cfg.agent_horizon),
+                "nobody is cut off by the scene's clock: {e:?}"
+            );
+        }
+        if let Some(ended) = result.scene_episode {
+            break ended;
+        }
+        // No car appears after the horizon: the road only empties.
+        let live = scene.alive().iter().filter(|a| **a).count();
+        if steps >= cfg.horizon {
+            assert!(live <= last_live, "step {steps}: {last_live} → {live} cars");
+        }
+        last_live = live;
+        assert!(steps < 3000, "the scene episode never ended");
+    };
+    assert!(steps > cfg.horizon, "it ran past the horizon: {steps}");
+    assert_eq!(ended.steps, steps);
+    // Every agent episode of the scene episode is in its tally, and it ended when the last did.
+    assert_eq!(ended.agents(), outcomes.values().map(|&c| u64::from(c)).sum::<u64>());
+    assert_eq!(ended.successes, outcomes.get(&Outcome::Success).copied().unwrap_or(0));
+    assert_eq!(scene.steps_since_reset(), 0, "then the scene starts afresh");
+    assert_eq!(scene.alive().iter().filter(|a| **a).count(), 10);
+}
+
+#[test]
+fn a_wreck_can_hold_its_slot_until_it_is_removed() {
+    for holds in [false, true] {
+        let mut cfg = config(2);
+        cfg.wreck_holds_slot = holds;
+        cfg.crash_obstacle_steps = 25;
+        let mut scene = Scene::new(&cfg, 1).unwrap();
+        scene.clear();
+        let east = route_from(scene.network(), 0, 0.0);
+        let north = route_from(scene.network(), 1, 0.0);
+        scene.place(0, east, 58.0, 0.0, 0.0, 8.0);
+        scene.place(1, north, 58.0, 0.0, 0.0, 8.0);
+        let mut crashed_at = None;
+        for step in 0..80 {
+            let result = scene.step(&[0.0, 0.3, 0.0, 0.3]).clone();
+            if crashed_at.is_none() && result.dones[0] {
+                crashed_at = Some(step);
+                continue;
+            }
+            let Some(at) = crashed_at else { continue };
+            let refilled = scene.alive()[0];
+            if step - at < 24 {
+                assert_eq!(refilled, !holds, "step {step}, wreck holds its slot: {holds}");
+            } else if step - at > 25 {
+                assert!(refilled, "the wreck is gone, the slot refills");
+                break;
+            }
+        }
+        assert!(crashed_at.is_some(), "the cars collided");
+    }
+}
+
+#[test]
+fn the_lateral_limit_makes_a_fast_car_run_wide_in_a_turn() {
+    // The same car, the same full-right steering at 15 m/s: without tyres it turns on the
+    // spot (radius 2.9 m), with a 9 m/s² limit on a radius of at least v²/a = 25 m.
+    let radius = |limit: f32| {
+        let mut cfg = config(1);
+        cfg.vehicle.max_lateral_accel = limit;
+        let mut scene = Scene::new(&cfg, 1).unwrap();
+        scene.clear();
+        let east = route_from(scene.network(), 0, 0.0);
+        scene.place(0, east, 10.0, 0.0, 0.0, 15.0);
+        let before = scene.car(0).unwrap().kin;
+        scene.step(&[1.0, 0.0]);
+        let after = scene.car(0).unwrap().kin;
+        let turned = super::angle::wrap(after.heading - before.heading).abs();
+        (after.position - before.position).length() / turned
+    };
+    assert!(radius(0.0) < 3.5, "{}", radius(0.0));
+    assert!(radius(9.0) >= 24.0, "{}", radius(9.0));
 }
 
 #[test]

@@ -13,6 +13,11 @@
 //!
 //! Lateral model: yaw rate = v · tan(δ) / wheelbase, steering applied at once. Following the
 //! paper (§3.3), the steering action +1 turns fully right, so δ = −steer · 40°.
+//!
+//! A kinematic bicycle has no tyres: at 10 m/s full lock turns with 34 m/s² of lateral
+//! acceleration, where MetaDrive's Bullet car slides beyond ≈ 9 m/s². [`Dynamics`] can cap the
+//! yaw rate at `max_lateral_accel / v` (a friction limit: the car runs wide instead of turning
+//! tighter) and sets the braking deceleration; docs/SIMULATOR.md compares both with MetaDrive.
 
 use parry2d::math::Vec2;
 
@@ -23,12 +28,39 @@ pub const MAX_STEER_RAD: f32 = 40.0 * std::f32::consts::PI / 180.0;
 pub const MAX_SPEED: f32 = 80.0 / 3.6;
 pub const MASS: f32 = 1100.0;
 pub const MAX_ENGINE_FORCE: f32 = 3300.0;
-pub const MAX_BRAKE_FORCE: f32 = 6600.0;
 const GRAVITY: f32 = 9.81;
 const ROLLING_RESISTANCE: f32 = 0.015;
 const DRAG_FACTOR: f32 = 0.5 * 1.225 * 0.30 * 2.2;
 /// Half the diagonal: no part of the car is farther than this from its centre.
 pub const BOUNDING_RADIUS: f32 = 2.4399; // ≥ √(2.2575² + 0.926²) = 2.43996
+
+/// The limits a car's tyres and brakes set (`[scenario.vehicle]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Dynamics {
+    /// Largest lateral acceleration v·ω, m/s² (0: none, the pure kinematic bicycle).
+    pub max_lateral_accel: f32,
+    /// Deceleration of full braking, m/s² (brake force = this × mass).
+    pub max_brake_decel: f32,
+}
+
+impl Default for Dynamics {
+    /// The pure kinematic bicycle braking at 6 m/s².
+    fn default() -> Self {
+        Dynamics {
+            max_lateral_accel: 0.0,
+            max_brake_decel: 6.0,
+        }
+    }
+}
+
+impl From<&junction_common::config::VehicleConfig> for Dynamics {
+    fn from(c: &junction_common::config::VehicleConfig) -> Self {
+        Dynamics {
+            max_lateral_accel: c.max_lateral_accel,
+            max_brake_decel: c.max_brake_decel,
+        }
+    }
+}
 
 /// Kinematic state of one car.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -39,6 +71,7 @@ pub struct Kinematics {
     /// Last applied action, clipped to [-1, 1].
     pub steer: f32,
     pub throttle: f32,
+    pub dynamics: Dynamics,
 }
 
 impl Kinematics {
@@ -49,12 +82,25 @@ impl Kinematics {
             speed: speed.clamp(0.0, MAX_SPEED),
             steer: 0.0,
             throttle: 0.0,
+            dynamics: Dynamics::default(),
         }
     }
 
-    /// Yaw rate (rad/s, counter-clockwise positive) for the current speed and steering.
+    pub fn with_dynamics(self, dynamics: Dynamics) -> Self {
+        Kinematics { dynamics, ..self }
+    }
+
+    /// Yaw rate (rad/s, counter-clockwise positive) for the current speed and steering, within
+    /// the lateral-acceleration limit.
     pub fn yaw_rate(&self) -> f32 {
-        self.speed * (-self.steer * MAX_STEER_RAD).tan() / WHEELBASE
+        let geometric = self.speed * (-self.steer * MAX_STEER_RAD).tan() / WHEELBASE;
+        let limit = self.dynamics.max_lateral_accel;
+        if limit > 0.0 && self.speed > 0.0 {
+            let most = limit / self.speed;
+            geometric.clamp(-most, most)
+        } else {
+            geometric
+        }
     }
 
     /// Engine force (N) under the current throttle at `speed`.
@@ -70,7 +116,7 @@ impl Kinematics {
     fn acceleration(&self, speed: f32) -> f32 {
         let engine = self.engine_force(speed);
         let resist = if speed > 0.0 {
-            (-self.throttle).max(0.0) * MAX_BRAKE_FORCE
+            (-self.throttle).max(0.0) * self.dynamics.max_brake_decel * MASS
                 + ROLLING_RESISTANCE * MASS * GRAVITY
                 + DRAG_FACTOR * speed * speed
         } else {
@@ -162,6 +208,40 @@ mod tests {
             k.heading
         );
         assert!(k.yaw_rate() < 0.0);
+    }
+
+    #[test]
+    fn the_lateral_limit_caps_the_yaw_rate_at_speed_only() {
+        let tyres = Dynamics {
+            max_lateral_accel: 9.0,
+            ..Dynamics::default()
+        };
+        let fast = Kinematics {
+            steer: 1.0,
+            ..Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(tyres)
+        };
+        // Geometric: 10 · tan(40°) / 2.47 = 3.40 rad/s, 34 m/s² laterally; capped: 0.9 rad/s.
+        assert!((fast.yaw_rate() + 0.9).abs() < 1e-5, "{}", fast.yaw_rate());
+        let unlimited = Kinematics {
+            dynamics: Dynamics::default(),
+            ..fast
+        };
+        assert!((unlimited.yaw_rate() + 3.397).abs() < 1e-2);
+        // At walking pace full lock stays within the limit: the cap changes nothing.
+        let slow = Kinematics { speed: 1.5, ..fast };
+        let geometric = -1.5 * MAX_STEER_RAD.tan() / WHEELBASE;
+        assert_eq!(slow.yaw_rate(), geometric);
+    }
+
+    #[test]
+    fn braking_decelerates_at_the_configured_rate() {
+        let mut k = Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(Dynamics {
+            max_brake_decel: 8.5,
+            ..Dynamics::default()
+        });
+        k.advance([0.0, -1.0], 0.1, 5);
+        // 8.5 from the brake, ≈ 0.15 rolling resistance, ≈ 0.04 drag at 10 m/s.
+        assert!((k.speed - (10.0 - 0.1 * 8.69)).abs() < 0.01, "{}", k.speed);
     }
 
     #[test]

@@ -17,11 +17,53 @@ pub fn clipped_surrogate(
     advantages: &Tensor,
     clip: f64,
 ) -> SurrogateTerms {
+    weighted_clipped_surrogate(new_log_probs, old_log_probs, advantages, clip, None)
+}
+
+/// The decoupled PPO objective (Hilton et al. 2021, "Batch size-invariance for policy
+/// optimization") for data from lagging actors: the ratio is taken against the proximal
+/// policy π_prox (the policy when the update began), so the clip bounds this update's step
+/// whatever the data's age, and each sample is weighted by how much likelier π_prox makes
+/// its action than the behaviour policy did, truncated at `max_weight` (IMPALA's ρ̄):
+/// −E[min(π_prox/π_b, ρ̄) · min(ρ·A, clip(ρ, 1 ± ε)·A)] with ρ = π/π_prox.
+pub fn decoupled_surrogate(
+    new_log_probs: &Tensor,
+    proximal_log_probs: &Tensor,
+    behaviour_log_probs: &Tensor,
+    advantages: &Tensor,
+    clip: f64,
+    max_weight: f64,
+) -> SurrogateTerms {
+    let weights = (proximal_log_probs - behaviour_log_probs)
+        .exp()
+        .clamp_max(max_weight)
+        .detach();
+    weighted_clipped_surrogate(
+        new_log_probs,
+        proximal_log_probs,
+        advantages,
+        clip,
+        Some(&weights),
+    )
+}
+
+fn weighted_clipped_surrogate(
+    new_log_probs: &Tensor,
+    old_log_probs: &Tensor,
+    advantages: &Tensor,
+    clip: f64,
+    weights: Option<&Tensor>,
+) -> SurrogateTerms {
     let log_ratio = new_log_probs - old_log_probs;
     let ratio = log_ratio.exp();
     let unclipped = &ratio * advantages;
     let clipped = ratio.clamp(1.0 - clip, 1.0 + clip) * advantages;
-    let loss = -unclipped.minimum(&clipped).mean(unclipped.kind());
+    let pessimistic = unclipped.minimum(&clipped);
+    let pessimistic = match weights {
+        Some(w) => pessimistic * w,
+        None => pessimistic,
+    };
+    let loss = -pessimistic.mean(unclipped.kind());
     let (approx_kl, clip_fraction) = tch::no_grad(|| {
         let kl = ((&ratio - 1.0) - &log_ratio).mean(Kind::Float);
         let clipped_share = (&ratio - 1.0)
@@ -93,6 +135,29 @@ mod tests {
             "unclipped: −A·ρ/n = −0.5, got {}",
             g[1]
         );
+    }
+
+    #[test]
+    fn decoupled_surrogate_clips_around_the_proximal_policy_and_weights_by_truncated_lag() {
+        // Row 0: π_prox/π_b = e^0.5 ≈ 1.65, truncated to 1.2; ρ = π/π_prox = 1, A = 1.
+        // Row 1: π_prox/π_b = e^−1 ≈ 0.368; ρ = e^0.5 ≈ 1.65 clipped to 1.2 (ε = 0.2), A = 2.
+        let behaviour = t(&[-1.0, 0.0]);
+        let proximal = t(&[-0.5, -1.0]);
+        let new = t(&[-0.5, -0.5]).set_requires_grad(true);
+        let terms = decoupled_surrogate(&new, &proximal, &behaviour, &t(&[1.0, 2.0]), 0.2, 1.2);
+        let w1 = (-1.0f64).exp();
+        let expected = -(1.2 * 1.0 + w1 * 1.2 * 2.0) / 2.0;
+        assert!((scalar(&terms.loss) - expected).abs() < 1e-5, "{}", scalar(&terms.loss));
+        // The clip is taken around π_prox, not π_b: row 1 is clipped, row 0 is not.
+        assert!((scalar(&terms.clip_fraction) - 0.5).abs() < 1e-6);
+        terms.loss.backward();
+        let g = Vec::<f32>::try_from(new.grad()).unwrap();
+        assert!((g[0] + 0.6).abs() < 1e-5, "−w·A·ρ/n = −1.2·1·1/2, got {}", g[0]);
+        assert_eq!(g[1], 0.0, "clipped in the advantage's direction: no gradient");
+        // With no lag (π_prox = π_b) it is plain PPO.
+        let plain = clipped_surrogate(&new, &proximal, &t(&[1.0, 2.0]), 0.2);
+        let same = decoupled_surrogate(&new, &proximal, &proximal, &t(&[1.0, 2.0]), 0.2, 1.0);
+        assert!((scalar(&plain.loss) - scalar(&same.loss)).abs() < 1e-6);
     }
 
     #[test]

@@ -13,6 +13,8 @@
 //!     repeat `epochs` times, over shuffled minibatches:
 //!         ρ = π(a|s) / π_behaviour(a|s)
 //!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·Σ_h L_V(V_h(x), R_h) − c_e·H[π]
+//!         (`ppo.objective = "decoupled"`: ρ = π / π_start, the policy before this update,
+//!          and each sample weighted by min(π_start / π_behaviour, ρ̄), ppo.rs)
 //!         (with `[safety]`: Â mixes in the cost advantage, safety.rs)
 //!         Adam step on ∇L, gradient norm clipped
 //!     coordination learns (copo, dynamic-lcf: the meta-gradient on the LCF, meta_lcf.rs)
@@ -25,7 +27,7 @@ use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{PpoConfig, RunConfig, SafetyMode};
+use junction_common::config::{PpoConfig, PpoObjective, RunConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
 use junction_common::policy::{GaussianPolicy, Mlp, Policy, gaussian_entropy, gaussian_log_prob};
 use junction_common::weights::{self, Decoded, WeightsError};
@@ -35,7 +37,7 @@ use super::batch::{
     standardize,
 };
 use super::coordination::{Coordination, MetaStep};
-use super::ppo::{clipped_surrogate, value_loss};
+use super::ppo::{clipped_surrogate, decoupled_surrogate, value_loss};
 use super::safety::Lagrangian;
 use super::{AlgoError, Algorithm, UpdateStats};
 use crate::optim::Adam;
@@ -195,6 +197,14 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             return Err(AlgoError::EmptyBatch);
         }
         let policy_advantages = self.coordination.policy_advantages(&batch)?;
+        // Decoupled PPO's proximal policy: this update's starting point.
+        let proximal_log_probs = match c.objective {
+            PpoObjective::Clipped => None,
+            PpoObjective::Decoupled => Some(tch::no_grad(|| {
+                let (mean, log_std) = self.policy.distribution(&self.policy.normalize(&batch.obs));
+                gaussian_log_prob(&mean, &log_std, &batch.actions)
+            })),
+        };
         let before = if self.coordination.learns() {
             Some(GaussianPolicy::from_bytes(&self.policy.to_bytes(0)?, device)?.0)
         } else {
@@ -249,12 +259,18 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                 let (mean, log_std) = self.policy.distribution(&obs);
                 let log_probs =
                     gaussian_log_prob(&mean, &log_std, &batch.actions.index_select(0, &idx));
-                let surrogate = clipped_surrogate(
-                    &log_probs,
-                    &batch.old_log_probs.index_select(0, &idx),
-                    &advantages,
-                    c.clip,
-                );
+                let behaviour_log_probs = batch.old_log_probs.index_select(0, &idx);
+                let surrogate = match &proximal_log_probs {
+                    None => clipped_surrogate(&log_probs, &behaviour_log_probs, &advantages, c.clip),
+                    Some(proximal) => decoupled_surrogate(
+                        &log_probs,
+                        &proximal.index_select(0, &idx),
+                        &behaviour_log_probs,
+                        &advantages,
+                        c.clip,
+                        c.max_importance_weight,
+                    ),
+                };
                 let v_loss = &v_losses[0];
                 let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
                 let loss = &surrogate.loss + (v_loss + &extra_v_loss) * c.value_coef
