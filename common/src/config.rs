@@ -418,6 +418,10 @@ pub struct DynamicLcfConfig {
     pub lcf_lr: f64,
     /// Passes over the batch's minibatches of the meta-gradient after each PPO update.
     pub meta_iterations: usize,
+    /// Bound of φ, degrees: φ = max_phi_deg · tanh(f_ψ).
+    pub max_phi_deg: f32,
+    /// Largest mean change of φ over a batch per update, degrees (0 = unpaced).
+    pub max_phi_step_deg: f32,
 }
 
 /// The centralised-critic baselines' own settings (`ccppo-concat`).
@@ -654,6 +658,14 @@ impl RunConfig {
         let dynamic = &self.dynamic_lcf;
         if dynamic.hidden.is_empty() || dynamic.hidden.iter().any(|&h| h <= 0) {
             problems.push("dynamic_lcf.hidden must list at least one positive layer size".into());
+        }
+        if !(dynamic.max_phi_deg > 0.0 && dynamic.max_phi_deg <= 90.0)
+            || !(dynamic.max_phi_step_deg >= 0.0 && dynamic.max_phi_step_deg.is_finite())
+        {
+            problems.push(
+                "dynamic_lcf.max_phi_deg must be in (0, 90] and dynamic_lcf.max_phi_step_deg >= 0"
+                    .into(),
+            );
         }
         for (key, lr, iterations) in [
             ("copo", copo.lcf_lr, copo.meta_iterations),

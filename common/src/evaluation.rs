@@ -10,7 +10,7 @@ use crate::confidence::{self, Estimate};
 use crate::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
 
 /// `format` of an eval result file; bumped when a field changes meaning.
-pub const EVAL_FORMAT: &str = "junction-eval/2";
+pub const EVAL_FORMAT: &str = "junction-eval/1";
 /// CoPO counts arrivals and failures per this many decision steps of a scene.
 pub const COPO_STEP_BLOCK: f64 = 300.0;
 

@@ -91,6 +91,19 @@ struct ReportArgs {
     /// Episodes a training window needs before its success rate counts as reached.
     #[arg(long, default_value_t = 100)]
     min_window_episodes: usize,
+    /// Group runs by their directory's name without its "-s<seed>" suffix instead of by
+    /// learner.algo: variants of one algorithm (an ablation's arms) become the columns.
+    #[arg(long)]
+    group_by_dir: bool,
+    /// Agent-step counts at which the table of training success (MetaDrive's definition)
+    /// reads each run's curve, comma-separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "AGENT_STEPS",
+        default_value = "1000000,2500000,5000000,7500000,10000000,15000000"
+    )]
+    marks: Vec<u64>,
 }
 
 #[derive(Args)]
@@ -231,6 +244,8 @@ fn main() -> anyhow::Result<()> {
                 scenes: args.scenes,
                 success_threshold: args.success_threshold,
                 min_window_episodes: args.min_window_episodes,
+                group_by_dir: args.group_by_dir,
+                marks: args.marks,
                 ..ReportOptions::default()
             };
             let summary = report::run(&args.runs, &args.out, &options)?;

@@ -65,33 +65,64 @@ fn dqn_learns_to_cross_the_tiny_intersection() {
     learns_to_cross_the_tiny_intersection("dqn");
 }
 
+/// The asynchronous path: updates of one fragment each while the actor's 8 scenes deliver 8
+/// fragments per policy version and the queue holds 4 more, so most fragments are several
+/// versions old when trained on. PPO must still learn (what `ppo.objective` is for).
+#[test]
+fn ppo_learns_from_fragments_several_versions_old() {
+    let hit = learn(
+        "ippo",
+        &[
+            "--set",
+            "ppo.train_batch_env_steps=200",
+            "--set",
+            "learner.ingest_queue_fragments=4",
+            "--set",
+            "learner.max_policy_lag=16",
+        ],
+        4000,
+    );
+    let lag = hit["update"]["lag_mean"].as_f64().unwrap_or(0.0);
+    println!("learning (ippo, lagging fragments): trained fragments {lag:.1} versions old");
+    assert!(
+        lag >= 3.0,
+        "the trained fragments were only {lag} versions old: the test proves nothing about lag"
+    );
+}
+
 /// Trains `algo` (`learner.algo`) on the tiny scenario until the success bar or the limits.
 fn learns_to_cross_the_tiny_intersection(algo: &str) {
+    learn(algo, &[], MAX_UPDATES);
+}
+
+/// Trains `algo` with `extra` learner flags until the success bar (returned: the progress
+/// line that reached it) or the limits (a panic).
+fn learn(algo: &str, extra: &[&str], max_updates: u64) -> serde_json::Value {
     // A test that failed while holding the lock poisons it; the others still run.
     let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    let dir = TempDir::new(&format!("learning-{algo}"));
+    let dir = TempDir::new(&format!("learning-{algo}-{}", extra.len()));
     let run_dir = dir.path().join("run");
     let window = WINDOW.to_string();
-    let (mut learner, endpoints) = start_learner(
-        &run_dir,
-        dir.path(),
-        &[
-            "--scenario",
-            "tiny-straight",
-            "--seed",
-            "1",
-            "--max-seconds",
-            "200",
-            "--set",
-            "run.progress_interval_s=1",
-            "--set",
-            &format!("run.stats_window_episodes={window}"),
-            "--set",
-            "run.checkpoint_every_updates=0",
-            "--set",
-            &format!("learner.algo={algo}"),
-        ],
-    );
+    let window_flag = format!("run.stats_window_episodes={window}");
+    let algo_flag = format!("learner.algo={algo}");
+    let mut flags = vec![
+        "--scenario",
+        "tiny-straight",
+        "--seed",
+        "1",
+        "--max-seconds",
+        "200",
+        "--set",
+        "run.progress_interval_s=1",
+        "--set",
+        &window_flag,
+        "--set",
+        "run.checkpoint_every_updates=0",
+        "--set",
+        &algo_flag,
+    ];
+    flags.extend_from_slice(extra);
+    let (mut learner, endpoints) = start_learner(&run_dir, dir.path(), &flags);
     let actor = start_actor(
         &endpoints,
         dir.path(),
@@ -122,7 +153,7 @@ fn learns_to_cross_the_tiny_intersection(algo: &str) {
             .last()
             .and_then(|l| l["updates"].as_u64())
             .unwrap_or(0);
-        if started.elapsed() > MAX_WALL || updates > MAX_UPDATES || learner.try_exit().is_some() {
+        if started.elapsed() > MAX_WALL || updates > max_updates || learner.try_exit().is_some() {
             break None;
         }
         std::thread::sleep(Duration::from_millis(500));
@@ -154,4 +185,5 @@ fn learns_to_cross_the_tiny_intersection(algo: &str) {
         start <= 0.2,
         "the untrained policy already succeeds ({start}); the test would prove nothing"
     );
+    hit
 }

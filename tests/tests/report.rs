@@ -41,9 +41,13 @@ fn row<'a>(markdown: &'a str, scene: &str, label: &str) -> Vec<&'a str> {
         .split("## ")
         .find(|s| s.starts_with(&format!("Table 1 — {scene}")))
         .unwrap_or_else(|| panic!("no table for {scene}:\n{markdown}"));
+    // The row of exactly that metric ("Success rate ↑", not "Success rate (MetaDrive) ↑"),
+    // else the first whose label starts with it.
+    let exact = |l: &&str| [" ↑", " ↓"].iter().any(|a| l.starts_with(&format!("| {label}{a}")));
     let line = section
         .lines()
-        .find(|l| l.starts_with(&format!("| {label}")))
+        .find(exact)
+        .or_else(|| section.lines().find(|l| l.starts_with(&format!("| {label}"))))
         .unwrap_or_else(|| panic!("no row {label:?} for {scene}:\n{section}"));
     line.trim_matches('|').split('|').map(str::trim).collect()
 }
@@ -131,7 +135,7 @@ fn figures_are_real_pictures_in_png_and_svg() {
     let dir = TempDir::new("report-figures");
     let (markdown, summary) = report(dir.path());
     let figures = summary["figures"].as_array().unwrap();
-    assert_eq!(figures.len(), 20, "10 metrics × PNG and SVG");
+    assert_eq!(figures.len(), 24, "12 metrics × PNG and SVG");
     for figure in figures {
         let name = figure.as_str().unwrap();
         assert!(markdown.contains(name), "report.md links {name}");

@@ -3,8 +3,9 @@
 //! meta-gradient of the global objective (meta_lcf.rs), so it learns where cooperation pays.
 //!
 //! ```text
-//! φ_i,t = 90°·tanh(f_ψ(S_N(i,t)))   f_ψ: a small MLP over the neighbourhood features every
-//!                                    fragment ships (count, distances, relative speeds)
+//! φ_i,t = φ_max·tanh(f_ψ(S_N(i,t)))  f_ψ: a small MLP over the neighbourhood features every
+//!                                    fragment ships (count, distances, relative speeds);
+//!         0 for an agent without neighbours (it has no neighbourhood reward to weigh)
 //! for each update (the loop is shared_ppo.rs's; the critics see the agent's observation):
 //!     r_C = α·cos φ·r_i + β·sin φ·r_N     (r_N: mean reward of the live neighbours, 0 alone)
 //!     r_G = mean reward of every agent in the scene at that step
@@ -13,7 +14,16 @@
 //!     meta-gradient on ψ: A_C is linear in the rewards, so with w = GAEᵀ·c (gae.rs)
 //!         mean_k[c_k·A_C,k(ψ)] = mean_j[w_j·r_C,j(ψ)] + terms without ψ
 //!         `meta_iterations` passes: Adam ascent on mean_j[w_j·r_C,j(ψ)] / std(A_C)
+//!     pace: if the batch's mean |Δφ| exceeds max_phi_step_deg, ψ moves back along the step
+//!           until it does not
 //! ```
+//!
+//! Why the bound, the lone-agent rule and the pace (RESULTS.md, "A well-posed dynamic LCF"):
+//! with φ free in ±90° and CoPO's r_N = 0 for an agent alone, the meta-gradient drove φ to
+//! 90° everywhere (lone agents first: φ only scaled their own reward down) and the agents
+//! learned to wait. φ_max (45° by default) keeps every agent's own reward weighted at least as
+//! much as its neighbours'; φ = 0 alone makes the lone case IPPO; the pace keeps φ from
+//! outrunning the policy that has to adapt to it.
 //!
 //! φ does not enter the observation: the learner computes it from the features, so actors run
 //! the plain policy. f_ψ starts with a near-zero output (φ ≈ 0°: IPPO, like CoPO's μ = 0°).
@@ -26,7 +36,7 @@ use tch::{Device, Kind, Tensor};
 
 use junction_common::config::{DynamicLcfConfig, LcfConfig};
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf::{self, FEATURES, MAX_PHI_DEG};
+use junction_common::lcf::{self, FEATURES};
 use junction_common::policy::Mlp;
 use junction_common::weights::{self, Decoded, WeightsError};
 
@@ -43,9 +53,11 @@ const COORDINATED: usize = 0;
 const GLOBAL: usize = 1;
 const ADAM_KEY: &str = "dynamic_lcf.adam";
 
-/// φ in degrees for rows of neighbourhood features [m, FEATURES].
-fn phi_deg(net: &Mlp, features: &Tensor) -> Tensor {
-    net.forward(features).squeeze_dim(-1).tanh() * f64::from(MAX_PHI_DEG)
+/// φ in degrees for rows of neighbourhood features [m, FEATURES], within ±`max_deg`; 0 where
+/// the first feature (the neighbour count) is 0.
+fn phi_deg(net: &Mlp, features: &Tensor, max_deg: f64) -> Tensor {
+    let has_neighbours = features.select(1, 0).gt(0.0).to_kind(Kind::Float);
+    net.forward(features).squeeze_dim(-1).tanh() * max_deg * has_neighbours
 }
 
 /// The features of every alive cell, in batch order, row-major.
@@ -67,6 +79,9 @@ pub struct DynamicLcf {
     alpha: f32,
     beta: f32,
     iterations: usize,
+    max_phi_deg: f64,
+    /// Largest mean |Δφ| over a batch per update, degrees (0: unpaced).
+    max_phi_step_deg: f64,
 }
 
 impl DynamicLcf {
@@ -87,7 +102,32 @@ impl DynamicLcf {
             alpha: lcf.alpha,
             beta: lcf.beta,
             iterations: config.meta_iterations,
+            max_phi_deg: f64::from(config.max_phi_deg),
+            max_phi_step_deg: f64::from(config.max_phi_step_deg),
         }
+    }
+
+    /// Moves ψ back towards `before` (its values before the meta step) until the mean |Δφ|
+    /// over `features` is at most `max_phi_step_deg`; returns the mean |Δφ| it leaves.
+    fn pace(&mut self, before: &[Tensor], phi_before: &Tensor, features: &Tensor) -> f64 {
+        let change = |net: &Mlp| -> f64 {
+            tch::no_grad(|| {
+                let phi = phi_deg(net, features, self.max_phi_deg);
+                f64::try_from((phi - phi_before).abs().mean(Kind::Float)).unwrap_or(f64::NAN)
+            })
+        };
+        let moved = change(&self.net);
+        if self.max_phi_step_deg <= 0.0 || !(moved > self.max_phi_step_deg) {
+            return moved;
+        }
+        let keep = self.max_phi_step_deg / moved;
+        tch::no_grad(|| {
+            for (mut now, was) in self.store.trainable_variables().into_iter().zip(before) {
+                let stepped = was + (&now - was) * keep;
+                now.copy_(&stepped);
+            }
+        });
+        change(&self.net)
     }
 
     fn device(&self) -> Device {
@@ -99,7 +139,7 @@ impl DynamicLcf {
         let features = Tensor::from_slice(rows)
             .reshape([(rows.len() / FEATURES) as i64, FEATURES as i64])
             .to_device(self.device());
-        let phi = tch::no_grad(|| phi_deg(&self.net, &features));
+        let phi = tch::no_grad(|| phi_deg(&self.net, &features, self.max_phi_deg));
         Ok(Vec::<f32>::try_from(phi.to_device(Device::Cpu))?)
     }
 }
@@ -185,7 +225,15 @@ impl Coordination for DynamicLcf {
         let rows = feature_rows(step.fragments);
         let features = to(&rows).reshape([batch.len as i64, FEATURES as i64]);
         let scale = f64::try_from(batch.heads[COORDINATED].advantages.std(true))? + 1e-8;
+        let before: Vec<Tensor> = self
+            .store
+            .trainable_variables()
+            .iter()
+            .map(|v| v.detach().copy())
+            .collect();
+        let phi_before = tch::no_grad(|| phi_deg(&self.net, &features, self.max_phi_deg));
         let (net, alpha, beta) = (&self.net, f64::from(self.alpha), f64::from(self.beta));
+        let max_deg = self.max_phi_deg;
         meta_lcf::ascend(
             &mut self.adam,
             self.iterations,
@@ -194,13 +242,14 @@ impl Coordination for DynamicLcf {
             step.rng,
             device,
             |idx| {
-                let phi =
-                    phi_deg(net, &features.index_select(0, idx)) * (std::f64::consts::PI / 180.0);
+                let phi = phi_deg(net, &features.index_select(0, idx), max_deg)
+                    * (std::f64::consts::PI / 180.0);
                 let reward = phi.cos() * own.index_select(0, idx) * alpha
                     + phi.sin() * neighbourhood.index_select(0, idx) * beta;
                 (weights.index_select(0, idx) * reward).mean(Kind::Float) / scale
             },
         )?;
+        self.pace(&before, &phi_before, &features);
         Ok(())
     }
 
@@ -236,12 +285,14 @@ mod tests {
         assert_checkpoint_round_trip, constant_critic_batch, copy_networks, host_state,
         neighbourhood_fragment, small_run,
     };
-    use junction_common::config::RunConfig;
+    use junction_common::config::{DynamicLcfConfig, RunConfig};
 
-    /// f_ψ with every weight 0 and output bias `bias`: φ = 90°·tanh(bias) for every agent.
+    /// f_ψ with every weight 0 and output bias `bias`, bounded at 90°: φ = 90°·tanh(bias)
+    /// for every agent with a neighbour.
     fn constant(bias: f64, lcf: &LcfConfig, lr: f64) -> DynamicLcf {
         let mut config = RunConfig::default().dynamic_lcf;
         config.lcf_lr = lr;
+        config.max_phi_deg = 90.0;
         let dynamic = DynamicLcf::new(&config, lcf, Device::Cpu);
         tch::no_grad(|| {
             for (name, mut var) in dynamic.store.variables() {
@@ -258,10 +309,10 @@ mod tests {
 
     #[test]
     fn the_coordinated_reward_by_hand() {
-        // φ = 30° everywhere, α = 1, β = ½; critics ≡ 0 and λ = 0 make A_C = r_C. Rewards by
-        // slot: −½, ½, 3⁄2, −½, ½, 3⁄2 at both steps; r_N at t = 0: slot 0 → 0.7, 2 → −½,
-        // 3 → 1; at t = 1: 0 → ½ (empty slot 5 left out), 3 → ½; the rest have no neighbours
-        // and keep only cos φ·r_i.
+        // φ = 30° for agents with neighbours, α = 1, β = ½; critics ≡ 0 and λ = 0 make
+        // A_C = r_C. Rewards by slot: −½, ½, 3⁄2, −½, ½, 3⁄2 at both steps; r_N at t = 0:
+        // slot 0 → 0.7, 2 → −½, 3 → 1; at t = 1: 0 → ½ (empty slot 5 left out), 3 → ½; the
+        // rest have no neighbours: φ = 0, their own reward.
         let lcf = LcfConfig {
             phi_deg: 0.0,
             alpha: 1.0,
@@ -272,23 +323,85 @@ mod tests {
         let (c, s) = (3.0f32.sqrt() / 2.0, 0.5 * 0.5);
         let expected = [
             c * -0.5 + s * 0.7,
-            c * 0.5,
+            0.5,
             c * 1.5 + s * -0.5,
             c * -0.5 + s * 1.0,
-            c * 0.5,
-            c * 1.5,
+            0.5,
+            1.5,
             c * -0.5 + s * 0.5,
-            c * 0.5,
-            c * 1.5,
+            0.5,
+            1.5,
             c * -0.5 + s * 0.5,
-            c * 0.5,
+            0.5,
         ];
         let got = host(&dynamic.policy_advantages(&batch).unwrap());
         for (g, e) in got.iter().zip(expected) {
             assert!((g - e).abs() < 1e-5, "{got:?} vs {expected:?}");
         }
         let report = dynamic.report(&[neighbourhood_fragment()], &batch).unwrap();
-        assert!((report.mean_deg - 30.0).abs() < 1e-4 && report.std_deg < 1e-4);
+        // 5 of the 11 agent-steps have neighbours.
+        assert!((report.mean_deg - 30.0 * 5.0 / 11.0).abs() < 1e-4, "{}", report.mean_deg);
+        let lone = report.by_neighbours[0].unwrap();
+        assert_eq!(lone, 0.0, "φ = 0 without neighbours");
+        assert!((report.by_neighbours[1].unwrap() - 30.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn phi_stays_within_its_bound_and_the_pace_limits_its_change_per_update() {
+        let lcf = RunConfig::default().lcf;
+        let mut config = RunConfig::default().dynamic_lcf;
+        config.max_phi_deg = 45.0;
+        let dynamic = DynamicLcf::new(&config, &lcf, Device::Cpu);
+        // A huge output saturates tanh: φ = ±45°, never more; 0 alone.
+        tch::no_grad(|| {
+            for (name, mut var) in dynamic.store.variables() {
+                if name.ends_with("bias") {
+                    let _ = var.fill_(50.0);
+                }
+            }
+        });
+        let features = [0.1, 0.5, 0.3, 0.1, 0.5, 0.0, 1.0, 1.0, 0.0, 0.5];
+        let phi = dynamic.phi_of(&features).unwrap();
+        assert!((phi[0] - 45.0).abs() < 1e-3 && phi[1] == 0.0, "{phi:?}");
+
+        // Pacing: a meta step that moved φ by ≈ 10° is pulled back to 1°.
+        let mut paced = DynamicLcf::new(
+            &DynamicLcfConfig {
+                max_phi_step_deg: 1.0,
+                ..config.clone()
+            },
+            &lcf,
+            Device::Cpu,
+        );
+        let rows = Tensor::from_slice(&features[..5]).reshape([1, 5]);
+        let before: Vec<Tensor> = paced
+            .store
+            .trainable_variables()
+            .iter()
+            .map(|v| v.detach().copy())
+            .collect();
+        let phi_before = phi_deg(&paced.net, &rows, 45.0).detach();
+        tch::no_grad(|| {
+            for (name, mut var) in paced.store.variables() {
+                if name.ends_with(&format!("l{}.bias", config.hidden.len())) {
+                    // φ ≈ 45·tanh(0.23) ≈ 10° away from ≈ 0.
+                    let _ = var.g_add_scalar_(0.23);
+                }
+            }
+        });
+        let unpaced_change = f64::try_from(
+            (phi_deg(&paced.net, &rows, 45.0) - &phi_before)
+                .abs()
+                .mean(Kind::Float),
+        )
+        .unwrap();
+        assert!(unpaced_change > 5.0, "{unpaced_change}");
+        let left = paced.pace(&before, &phi_before, &rows);
+        assert!((left - 1.0).abs() < 0.1, "paced change {left}");
+        // Unpaced (0): the step stays.
+        paced.max_phi_step_deg = 0.0;
+        let again = paced.pace(&before, &phi_before, &rows);
+        assert!((again - left).abs() < 1e-9);
     }
 
     /// PPO without gradient-norm clipping: the global head's gradient would change the norm.

@@ -21,7 +21,12 @@ pub enum Source {
 /// metrics training does not track.
 pub fn window_value(line: &ProgressLine, key: &str) -> Option<f64> {
     let w = &line.window;
+    let scenes = &line.scene_window;
+    let scene_rate = |rate: f64| (scenes.scene_episodes > 0).then_some(rate);
     Some(match key {
+        "scene_success_rate" => return scene_rate(scenes.success_rate),
+        "scene_crash_rate" => return scene_rate(scenes.crash_rate),
+        "scene_out_of_road_rate" => return scene_rate(scenes.out_of_road_rate),
         "collision_rate" => w.collisions_per_s,
         "success_rate" => w.success_rate,
         "crash_rate" => w.crash_rate,

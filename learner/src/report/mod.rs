@@ -25,7 +25,9 @@ use runs::Run;
 use crate::progress::LcfProgress;
 
 /// Curves drawn, one figure each, in this order.
-pub const FIGURE_METRICS: [&str; 10] = [
+pub const FIGURE_METRICS: [&str; 12] = [
+    "scene_success_rate",
+    "scene_crash_rate",
     "success_rate",
     "collision_rate",
     "crash_rate",
@@ -50,6 +52,10 @@ pub struct ReportOptions {
     pub min_window_episodes: usize,
     /// Points of each curve on the common agent-step axis.
     pub curve_points: usize,
+    /// Columns from run directory names (without "-s<seed>") instead of learner.algo.
+    pub group_by_dir: bool,
+    /// Agent-step counts of the table of training success at marks.
+    pub marks: Vec<u64>,
 }
 
 impl Default for ReportOptions {
@@ -60,6 +66,8 @@ impl Default for ReportOptions {
             success_threshold: 0.8,
             min_window_episodes: 100,
             curve_points: 120,
+            group_by_dir: false,
+            marks: vec![1_000_000, 2_500_000, 5_000_000, 7_500_000, 10_000_000, 15_000_000],
         }
     }
 }
@@ -102,6 +110,9 @@ pub struct GroupSummary {
     pub best_success: Option<(f64, Reach)>,
     /// φ of the final update, for methods whose φ is not 0 throughout.
     pub lcf: Option<LcfSummary>,
+    /// Training success in MetaDrive's definition at each of the options' agent-step marks
+    /// that every seed reached: (mark, mean ± interval over seeds).
+    pub success_at_marks: Vec<(u64, Estimate)>,
 }
 
 /// The LCF angle φ (degrees) of each seed's final update, mean ± interval over seeds: the
@@ -177,6 +188,11 @@ pub fn run(paths: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::Re
         }
     }
     anyhow::ensure!(!loaded.is_empty(), "no readable run among {paths:?}");
+    if options.group_by_dir {
+        for run in &mut loaded {
+            run.method = runs::variant_name(&run.dir);
+        }
+    }
     let methods = ordered(&options.methods, loaded.iter().map(|r| &r.method));
     let scenes = ordered(&options.scenes, loaded.iter().map(|r| &r.scene));
 
@@ -304,6 +320,17 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
         mean_reach,
         best_success,
         lcf: final_lcf(members),
+        success_at_marks: options
+            .marks
+            .iter()
+            .filter_map(|&mark| {
+                let values: Vec<f64> = members
+                    .iter()
+                    .map(|r| aggregate::interpolate(&aggregate::curve(r, "scene_success_rate"), mark as f64))
+                    .collect::<Option<_>>()?;
+                Some((mark, mean_t(&values)))
+            })
+            .collect(),
     }
 }
 
@@ -493,6 +520,7 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
             g.seeds.len()
         );
     }
+    marks_table(&mut md, &summary.groups);
     lcf_table(&mut md, &summary.groups);
     md.push_str("\n## Figures\n\nLines: mean over seeds of the training window (the last `run.stats_window_episodes` episodes) against agent-steps consumed; shading: range over seeds.\n\n");
     for key in FIGURE_METRICS {
@@ -503,6 +531,66 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
         );
     }
     md
+}
+
+/// CoPO's IPPO on MetaDrive's intersection (its benchmark's learning curve, mean of 8 seeds),
+/// at its environment steps × 25 agent-steps each: the reference the marks table is read
+/// against.
+const COPO_IPPO_INTERSECTION: [(u64, f64); 5] = [
+    (2_500_000, 0.19),
+    (5_000_000, 0.50),
+    (7_500_000, 0.63),
+    (12_500_000, 0.65),
+    (15_000_000, 0.70),
+];
+
+fn marks_table(md: &mut String, groups: &[GroupSummary]) {
+    let marks: std::collections::BTreeSet<u64> = groups
+        .iter()
+        .flat_map(|g| g.success_at_marks.iter().map(|(m, _)| *m))
+        .collect();
+    if marks.is_empty() {
+        return;
+    }
+    md.push_str(
+        "\n## Training success at agent-step marks (MetaDrive's definition)\n\n\
+         Per scene episode the share of its agents that arrived, averaged over the scene-episode \
+         window of `progress.jsonl` (`run.stats_window_scene_episodes`; the stochastic training \
+         policy), read off each seed's curve at the mark; mean ± 95 % over seeds. The \
+         reference row is CoPO's IPPO on MetaDrive's intersection (8 seeds, its learning-curve \
+         figure; CoPO's environment steps × ≈ 25 agent-steps; smoothed over 100 environment \
+         episodes, which lags its early curve).\n\n| Scene | Method |",
+    );
+    for mark in &marks {
+        let _ = write!(md, " {} |", plot::steps_label(*mark as f64));
+    }
+    md.push_str("\n|---|---|");
+    md.push_str(&"---|".repeat(marks.len()));
+    md.push('\n');
+    let mut scenes: Vec<&String> = groups.iter().map(|g| &g.scene).collect();
+    scenes.dedup();
+    for scene in scenes {
+        for g in groups.iter().filter(|g| &g.scene == scene) {
+            let _ = write!(md, "| {} | {} |", g.scene, g.method);
+            for mark in &marks {
+                let value = g.success_at_marks.iter().find(|(m, _)| m == mark);
+                let _ = write!(md, " {} |", cell(value.map(|(_, e)| e)));
+            }
+            md.push('\n');
+        }
+        if scene.starts_with("intersection") {
+            let _ = write!(md, "| {scene} | *CoPO's IPPO (MetaDrive)* |");
+            for mark in &marks {
+                let reference = COPO_IPPO_INTERSECTION.iter().find(|(m, _)| m == mark);
+                let _ = write!(
+                    md,
+                    " {} |",
+                    reference.map_or("—".to_string(), |(_, v)| format!("*{v:.2}*"))
+                );
+            }
+            md.push('\n');
+        }
+    }
 }
 
 fn lcf_table(md: &mut String, groups: &[GroupSummary]) {
@@ -651,6 +739,7 @@ mod tests {
             mean_reach: None,
             best_success: None,
             lcf: Some(lcf),
+            success_at_marks: Vec::new(),
         };
         lcf_table(&mut markdown, &[group]);
         assert!(
@@ -658,6 +747,59 @@ mod tests {
             "{markdown}"
         );
         assert!(markdown.contains("| 60.00 (1 seed) |"), "{markdown}");
+    }
+
+    /// A run whose training success in MetaDrive's definition is `points` (agent-steps, rate).
+    fn run_with_scene_success(seed: u64, points: &[(u64, f64)]) -> Run {
+        let lines = points
+            .iter()
+            .map(|&(agent_steps, rate)| ProgressLine {
+                agent_steps,
+                window: crate::stats::WindowSummary {
+                    episodes: 200,
+                    ..Default::default()
+                },
+                scene_window: crate::stats::SceneWindowSummary {
+                    scene_episodes: 20,
+                    success_rate: rate,
+                    ..Default::default()
+                },
+                ..ProgressLine::default()
+            })
+            .collect();
+        Run::fixture("ippo", seed, lines)
+    }
+
+    #[test]
+    fn success_at_marks_reads_every_seeds_curve_and_sits_beside_the_reference() {
+        let a = run_with_scene_success(1, &[(1_000_000, 0.1), (3_000_000, 0.3), (6_000_000, 0.6)]);
+        let b = run_with_scene_success(2, &[(1_000_000, 0.2), (6_000_000, 0.7)]);
+        let short = run_with_scene_success(3, &[(1_000_000, 0.9), (4_000_000, 0.9)]);
+        let options = ReportOptions {
+            marks: vec![2_500_000, 5_000_000],
+            ..ReportOptions::default()
+        };
+        let g = group("intersection", "ippo", &[&a, &b], &options);
+        // Seed 1 at 2.5 M: 0.1 + 0.2·0.75 = 0.25; seed 2: 0.2 + 0.5·0.3 = 0.35.
+        let (mark, at) = g.success_at_marks[0];
+        assert_eq!((mark, at.n), (2_500_000, 2));
+        assert!((at.value - 0.3).abs() < 1e-9, "{}", at.value);
+        assert!((g.success_at_marks[1].1.value - 0.55).abs() < 1e-9);
+        // A mark one seed did not reach is left out rather than averaged over fewer seeds.
+        let g3 = group("intersection", "ippo", &[&a, &b, &short], &options);
+        assert_eq!(g3.success_at_marks.len(), 1);
+        let mut md = String::new();
+        marks_table(&mut md, &[g]);
+        assert!(md.contains("| intersection | ippo | 0.3000 ± "), "{md}");
+        assert!(md.contains("| intersection | *CoPO's IPPO (MetaDrive)* | *0.19* | *0.50* |"), "{md}");
+    }
+
+    #[test]
+    fn variants_are_named_by_their_directory_without_the_seed() {
+        use std::path::Path;
+        assert_eq!(runs::variant_name(Path::new("x/runs/no-grad-clip-s12")), "no-grad-clip");
+        assert_eq!(runs::variant_name(Path::new("x/tyres-s")), "tyres-s");
+        assert_eq!(runs::variant_name(Path::new("plain")), "plain");
     }
 
     #[test]

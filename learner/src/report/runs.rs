@@ -128,6 +128,20 @@ pub fn load(dir: &Path) -> anyhow::Result<Run> {
     })
 }
 
+/// A run directory's name without a trailing `-s<seed>`: `decoupled-s2` → `decoupled`.
+pub fn variant_name(dir: &Path) -> String {
+    let name = dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    match name.rsplit_once("-s") {
+        Some((variant, seed)) if !seed.is_empty() && seed.bytes().all(|b| b.is_ascii_digit()) => {
+            variant.to_string()
+        }
+        _ => name,
+    }
+}
+
 fn read_config(path: &Path) -> anyhow::Result<Option<toml::Table>> {
     if !path.is_file() {
         return Ok(None);

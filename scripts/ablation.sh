@@ -1,0 +1,88 @@
+#!/usr/bin/env bash
+# An ablation: variants ("arms") of one training set-up, each trained for BUDGET agent-steps
+# with every seed in the local mode, its final checkpoint evaluated, then `learner report
+# --group-by-dir` (one column per arm) into OUT/report.
+#
+#   ARMS=results/ablation-5m/arms.tsv OUT=results/ablation-5m scripts/ablation.sh
+#
+# The arms file has one arm per line, `name<TAB>learner serve flags` ('#' starts a comment,
+# an empty flag list is the defaults). The flags are split at spaces and nothing else, so a
+# TOML string is written as it is: --set scenario.after_horizon="finish".
+# Runs go seed-major (every arm's seed 1, then every arm's seed 2, ...), so a stopped
+# ablation already has one seed of every arm. Knobs (environment; defaults in brackets):
+#   ARMS             the arms file [required]
+#   OUT              results directory [required]
+#   BUDGET           agent-steps per run [5000000]
+#   SEEDS            run.seed values [1 2 3]
+#   ACTORS           local actors per run [2]
+#   MAX_RUN_SECONDS  wall-clock cap per run [3600]
+#   EVAL_EPISODES    agent episodes per evaluation [1000]
+#   EVAL_SEED        evaluation seed: a validation seed, not the one final results use [777]
+#   SCENARIO         scenario name or file [intersection]
+#   BIN              binaries [target/release]
+# Resumable: a run whose evaluation exists is kept; a run without one is trained again.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+: "${ARMS:?ARMS must name the arms file}" "${OUT:?OUT must name the results directory}"
+BIN=${BIN:-target/release}
+BUDGET=${BUDGET:-5000000}
+SEEDS=${SEEDS:-1 2 3}
+ACTORS=${ACTORS:-2}
+MAX_RUN_SECONDS=${MAX_RUN_SECONDS:-3600}
+EVAL_EPISODES=${EVAL_EPISODES:-1000}
+EVAL_SEED=${EVAL_SEED:-777}
+SCENARIO=${SCENARIO:-intersection}
+
+say() { echo "ablation: $(date +%H:%M:%S) $*"; }
+[ -f "$ARMS" ] || { say "no arms file $ARMS" >&2; exit 1; }
+for tool in learner actor; do
+    [ -x "$BIN/$tool" ] || { say "$BIN/$tool is missing: run make build first" >&2; exit 1; }
+done
+mkdir -p "$OUT/runs"
+interrupted=0
+trap 'interrupted=1' INT TERM
+
+names=()
+flags=()
+while IFS=$'\t' read -r name arm_flags; do
+    case "$name" in '' | '#'*) continue ;; esac
+    names+=("$name")
+    flags+=("$arm_flags")
+done <"$ARMS"
+say "${#names[@]} arms × $(wc -w <<<"$SEEDS") seeds, $BUDGET agent-steps each, into $OUT"
+
+for seed in $SEEDS; do
+    for i in "${!names[@]}"; do
+        [ "$interrupted" = 1 ] && break 2
+        name=${names[$i]}
+        run_dir="$OUT/runs/$name-s$seed"
+        eval_file="$run_dir/eval/eval-$(basename "$SCENARIO" .toml)-seed$EVAL_SEED.json"
+        if [ -f "$eval_file" ]; then
+            say "$name seed $seed: kept"
+            continue
+        fi
+        rm -rf "$run_dir"
+        mkdir -p "$run_dir"
+        say "$name seed $seed: training (${flags[$i]:-defaults})"
+        # shellcheck disable=SC2086 # the arm's flags are a list of flags
+        RUN_DIR="$run_dir" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
+            nice scripts/run-local.sh --scenario "$SCENARIO" --seed "$seed" \
+            --set "run.max_agent_steps=$BUDGET" --set "run.progress_interval_s=5" \
+            ${flags[$i]} >"$run_dir/train.log" 2>&1
+        status=$?
+        [ "$interrupted" = 1 ] && break 2
+        if [ "$status" -ne 0 ]; then
+            say "$name seed $seed: training failed (exit $status, $run_dir/train.log)"
+            continue
+        fi
+        say "$name seed $seed: evaluating"
+        if ! nice "$BIN/actor" eval --checkpoint "$run_dir" --episodes "$EVAL_EPISODES" \
+            --seed "$EVAL_SEED" --scenes 4 --out "$run_dir/eval" >"$run_dir/eval.log" 2>&1; then
+            say "$name seed $seed: evaluation failed ($run_dir/eval.log)"
+        fi
+    done
+done
+say "report"
+"$BIN/learner" report --group-by-dir --methods "$(IFS=,; echo "${names[*]}")" \
+    --out "$OUT/report" "$OUT/runs"
