@@ -279,6 +279,8 @@ pub struct PpoConfig {
     pub normalize_observations: bool,
     pub objective: PpoObjective,
     pub max_importance_weight: f64,
+    pub kl_coef: f64,
+    pub kl_target: f64,
 }
 
 /// How the PPO algorithms treat data from actors whose policy lags the learner's.
@@ -621,6 +623,9 @@ impl RunConfig {
         }
         if !(p.max_importance_weight > 0.0) {
             problems.push("ppo.max_importance_weight must be > 0".to_string());
+        }
+        if !(p.kl_coef >= 0.0 && p.kl_coef.is_finite()) || !(p.kl_target > 0.0) {
+            problems.push("ppo.kl_coef must be >= 0 and ppo.kl_target > 0".to_string());
         }
         if p.epochs == 0 || p.minibatch_size == 0 || p.train_batch_env_steps == 0 {
             problems.push(

@@ -499,6 +499,20 @@ pub fn gaussian_log_prob(mean: &Tensor, log_std: &Tensor, actions: &Tensor) -> T
     per_dim.sum_dim_intlist(-1, false, per_dim.kind())
 }
 
+/// KL(p ‖ q) of two diagonal Gaussians, summed over action dimensions.
+pub fn gaussian_kl(
+    mean_p: &Tensor,
+    log_std_p: &Tensor,
+    mean_q: &Tensor,
+    log_std_q: &Tensor,
+) -> Tensor {
+    let var_q = (log_std_q * 2.0).exp();
+    let per_dim = log_std_q - log_std_p
+        + ((log_std_p * 2.0).exp() + (mean_p - mean_q).square()) / (var_q * 2.0)
+        - 0.5;
+    per_dim.sum_dim_intlist(-1, false, per_dim.kind())
+}
+
 /// Entropy of the diagonal Gaussian, summed over action dimensions.
 pub fn gaussian_entropy(log_std: &Tensor) -> Tensor {
     (log_std + 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln())).sum_dim_intlist(
@@ -511,6 +525,17 @@ pub fn gaussian_entropy(log_std: &Tensor) -> Tensor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn gaussian_kl_by_hand_and_zero_for_equal_distributions() {
+        // p = N(0, 1), q = N(1, 2²) in one dimension: ln 2 + (1 + 1)/8 − ½.
+        let t = |v: &[f32]| Tensor::from_slice(v).reshape([1, v.len() as i64]);
+        let kl = gaussian_kl(&t(&[0.0]), &t(&[0.0]), &t(&[1.0]), &t(&[2f32.ln()]));
+        let expected = 2f64.ln() + 0.25 - 0.5;
+        assert!((f64::try_from(kl.sum(Kind::Float)).unwrap() - expected).abs() < 1e-6);
+        let same = gaussian_kl(&t(&[0.3, -1.0]), &t(&[0.1, 0.2]), &t(&[0.3, -1.0]), &t(&[0.1, 0.2]));
+        assert!(f64::try_from(same.sum(Kind::Float)).unwrap().abs() < 1e-7);
+    }
 
     #[test]
     fn normalizer_matches_two_pass_statistics() {

@@ -15,7 +15,7 @@
 //! | `accepted_agent_steps`, `dropped_agent_steps` | agent-steps this process accepted, and those it dropped by reason (`stale`, `shutdown`, `update_failed`): the rest were trained on |
 //! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
 //! | `scene_window.*` | MetaDrive's (CoPO's) rates over the last `run.stats_window_scene_episodes` scene episodes: per scene episode the share of its agents with that outcome, averaged: `scene_episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_agents` (agent episodes per scene episode), `mean_steps` |
-//! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, and the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions) |
+//! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, `kl` and `kl_coef` (the adaptive KL penalty's, 0 without one), and the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions) |
 //!
 //! Fields are only ever added: every reader takes a missing field as its default.
 
@@ -65,6 +65,10 @@ pub struct UpdateProgress {
     pub explained_variance: f64,
     pub grad_norm: f64,
     pub learning_rate: f64,
+    /// Mean KL(π_start ‖ π) of the update and the KL penalty's coefficient after it (0
+    /// without a penalty).
+    pub kl: f64,
+    pub kl_coef: f64,
     /// Policy versions between the behaviour policies of the fragments trained on and the
     /// policy the update started from.
     pub lag_mean: f64,

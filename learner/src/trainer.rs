@@ -311,6 +311,8 @@ impl Trainer {
             explained_variance: stats.explained_variance,
             grad_norm: stats.grad_norm,
             learning_rate: stats.learning_rate,
+            kl: stats.kl,
+            kl_coef: stats.kl_coef,
             lag_mean: lags.iter().sum::<u64>() as f64 / lags.len().max(1) as f64,
             lag_max: lags.iter().copied().max().unwrap_or(0),
         };

@@ -43,6 +43,10 @@ pub struct UpdateStats {
     pub value_loss: f64,
     pub entropy: f64,
     pub approx_kl: f64,
+    /// Mean analytic KL(π_start ‖ π) over the update's minibatches (with a KL penalty), and the
+    /// penalty's coefficient after the update (0 without one).
+    pub kl: f64,
+    pub kl_coef: f64,
     pub clip_fraction: f64,
     pub explained_variance: f64,
     pub grad_norm: f64,

@@ -15,6 +15,7 @@
 //!         L = −min(ρÂ, clip(ρ, 1±ε)Â) + c_v·Σ_h L_V(V_h(x), R_h) − c_e·H[π]
 //!         (`ppo.objective = "decoupled"`: ρ = π / π_start, the policy before this update,
 //!          and each sample weighted by min(π_start / π_behaviour, ρ̄), ppo.rs)
+//!         (`ppo.kl_coef > 0`: + β·KL(π_start ‖ π), β adapted to ppo.kl_target per update)
 //!         (with `[safety]`: Â mixes in the cost advantage, safety.rs)
 //!         Adam step on ∇L, gradient norm clipped
 //!     coordination learns (copo, dynamic-lcf: the meta-gradient on the LCF, meta_lcf.rs)
@@ -29,7 +30,9 @@ use tch::{Device, Kind, Tensor};
 
 use junction_common::config::{PpoConfig, PpoObjective, RunConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
-use junction_common::policy::{GaussianPolicy, Mlp, Policy, gaussian_entropy, gaussian_log_prob};
+use junction_common::policy::{
+    GaussianPolicy, Mlp, Policy, gaussian_entropy, gaussian_kl, gaussian_log_prob,
+};
 use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::batch::{
@@ -44,6 +47,8 @@ use crate::optim::Adam;
 
 /// Checkpoint key of the Lagrange multiplier.
 const SAFETY_MULTIPLIER: &str = "safety.multiplier";
+/// Checkpoint key of the adaptive KL penalty's coefficient.
+const KL_COEF: &str = "ppo.kl_coef";
 
 pub struct SharedPpo<C> {
     /// `learner.algo` value; also prefixes the checkpointed update count.
@@ -58,6 +63,8 @@ pub struct SharedPpo<C> {
     /// One per coordination signal, in its order.
     critics: Vec<Mlp>,
     adam: Adam,
+    /// The KL penalty's current coefficient (0: no penalty).
+    kl_coef: f64,
     seed: u64,
     updates: u64,
 }
@@ -118,6 +125,7 @@ impl<C: CriticInput> SharedPpo<C> {
             critic_store,
             critics,
             adam,
+            kl_coef: config.kl_coef,
             seed: run.run.seed,
             updates: 0,
         }
@@ -197,13 +205,20 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             return Err(AlgoError::EmptyBatch);
         }
         let policy_advantages = self.coordination.policy_advantages(&batch)?;
-        // Decoupled PPO's proximal policy: this update's starting point.
-        let proximal_log_probs = match c.objective {
-            PpoObjective::Clipped => None,
-            PpoObjective::Decoupled => Some(tch::no_grad(|| {
+        // The policy this update starts from: decoupled PPO's proximal policy, the KL anchor.
+        let decoupled = c.objective == PpoObjective::Decoupled;
+        let start = (decoupled || self.kl_coef > 0.0).then(|| {
+            tch::no_grad(|| {
                 let (mean, log_std) = self.policy.distribution(&self.policy.normalize(&batch.obs));
-                gaussian_log_prob(&mean, &log_std, &batch.actions)
-            })),
+                // Copies, not views of the parameters the optimiser is about to change.
+                (mean, log_std.copy())
+            })
+        });
+        let proximal_log_probs = match (&start, decoupled) {
+            (Some((mean, log_std)), true) => {
+                Some(tch::no_grad(|| gaussian_log_prob(mean, log_std, &batch.actions)))
+            }
+            _ => None,
         };
         let before = if self.coordination.learns() {
             Some(GaussianPolicy::from_bytes(&self.policy.to_bytes(0)?, device)?.0)
@@ -273,8 +288,20 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                 };
                 let v_loss = &v_losses[0];
                 let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
-                let loss = &surrogate.loss + (v_loss + &extra_v_loss) * c.value_coef
+                let mut loss = &surrogate.loss + (v_loss + &extra_v_loss) * c.value_coef
                     - &entropy * c.entropy_coef;
+                let mut kl = None;
+                if let (Some((start_mean, start_log_std)), true) = (&start, self.kl_coef > 0.0) {
+                    let divergence = gaussian_kl(
+                        &start_mean.index_select(0, &idx),
+                        &start_log_std.index_select(0, &idx),
+                        &mean,
+                        &log_std,
+                    )
+                    .mean(Kind::Float);
+                    loss += &divergence * self.kl_coef;
+                    kl = Some(divergence);
+                }
                 let loss_value = f64::try_from(&loss)?;
                 if !loss_value.is_finite() {
                     stats.skipped_minibatches += 1;
@@ -289,6 +316,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                 stats.entropy += f64::try_from(&entropy)?;
                 stats.approx_kl += f64::try_from(&surrogate.approx_kl)?;
                 stats.clip_fraction += f64::try_from(&surrogate.clip_fraction)?;
+                if let Some(kl) = &kl {
+                    stats.kl += f64::try_from(kl)?;
+                }
                 stats.samples_trained += idx.size()[0] as usize;
                 minibatches += 1;
             }
@@ -301,9 +331,23 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             &mut stats.approx_kl,
             &mut stats.clip_fraction,
             &mut stats.grad_norm,
+            &mut stats.kl,
         ] {
             *field /= n;
         }
+        if self.kl_coef > 0.0 {
+            // RLlib's schedule: keep the update's KL within a factor 2 of the target.
+            let factor = if stats.kl > 2.0 * c.kl_target {
+                1.5
+            } else if stats.kl < 0.5 * c.kl_target {
+                0.5
+            } else {
+                1.0
+            };
+            // Kept at f32 precision, what checkpoints store, so a resumed run continues exactly.
+            self.kl_coef = f64::from((self.kl_coef * factor) as f32);
+        }
+        stats.kl_coef = self.kl_coef;
         if let Some(before) = &before {
             self.coordination.learn(MetaStep {
                 fragments,
@@ -336,6 +380,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         if let Some(safety) = &self.safety {
             state.push((SAFETY_MULTIPLIER.into(), safety.multiplier_tensor()));
         }
+        if self.config.kl_coef > 0.0 {
+            state.push((KL_COEF.into(), Tensor::from_slice(&[self.kl_coef as f32])));
+        }
         state.extend(self.coordination.state_tensors());
         state
     }
@@ -349,6 +396,10 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         if let Some(safety) = &mut self.safety {
             let multiplier = state.take(SAFETY_MULTIPLIER, &[1])?.sum(Kind::Float);
             safety.set_multiplier(f64::try_from(multiplier)?);
+        }
+        if self.config.kl_coef > 0.0 {
+            let coef = state.take(KL_COEF, &[1])?.sum(Kind::Float);
+            self.kl_coef = f64::try_from(coef)?;
         }
         self.coordination.restore(state)
     }
@@ -669,6 +720,45 @@ mod tests {
         // A learner restored mid-training (λ > 0) continues exactly.
         testing::assert_checkpoint_round_trip(|| {
             let mut learner = lagrangian_ippo();
+            learner.update(std::slice::from_ref(&fragment)).unwrap();
+            learner
+        });
+    }
+
+    fn kl_learner(kl_target: f64) -> Ippo {
+        tch::manual_seed(5);
+        let mut run = small_run();
+        run.ppo.kl_coef = 0.2;
+        run.ppo.kl_target = kl_target;
+        ippo(&run, 2, 2)
+    }
+
+    #[test]
+    fn the_kl_penalty_adapts_its_coefficient_to_the_target_and_is_checkpointed() {
+        let fragment = neighbourhood_fragment();
+        // Any update moves the policy by more than 2 · 1e-12, and by less than 1e6 / 2.
+        let mut tight = kl_learner(1e-12);
+        let stats = tight.update(std::slice::from_ref(&fragment)).unwrap();
+        assert!(stats.kl > 0.0, "the update moved the policy: KL {}", stats.kl);
+        assert!((stats.kl_coef - 0.3).abs() < 1e-7, "{}", stats.kl_coef);
+        let mut loose = kl_learner(1e6);
+        assert!((loose.update(std::slice::from_ref(&fragment)).unwrap().kl_coef - 0.1).abs() < 1e-7);
+        // The penalty changes the update: without it the policy ends elsewhere.
+        let mut run = small_run();
+        run.ppo.kl_target = 1e-12;
+        let mut plain = ippo(&run, 2, 2);
+        let mut penalised = kl_learner(1e-12);
+        copy_networks(&plain, &mut penalised);
+        for _ in 0..2 {
+            plain.update(std::slice::from_ref(&fragment)).unwrap();
+            penalised.update(std::slice::from_ref(&fragment)).unwrap();
+        }
+        assert_ne!(
+            plain.policy().to_bytes(1).unwrap(),
+            penalised.policy().to_bytes(1).unwrap()
+        );
+        testing::assert_checkpoint_round_trip(|| {
+            let mut learner = kl_learner(1e-12);
             learner.update(std::slice::from_ref(&fragment)).unwrap();
             learner
         });
