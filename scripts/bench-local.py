@@ -6,7 +6,9 @@ measures a window and prints one JSON object:
   agent_steps_per_s        agent-steps consumed for training (junction_learner_agent_steps_total)
   samples_trained_per_s    agent-steps through gradient steps (× epochs)
   policy_lag_p50/p99       from junction_learner_policy_lag_versions (smallest bucket bound holding
-                           the quantile; the buckets 0..4 are one version wide)
+                           the quantile; the buckets 0..4 are one version wide): lag on arrival
+  trained_lag_p50/p99      from junction_learner_trained_policy_lag_versions: lag of the fragments
+                           trained on, against the policy their update started from
   learner_utilisation      update time / wall time (junction_learner_update_duration_seconds_sum)
   actor_transport_share    transport seconds / (inference + simulation + transport) seconds
   actor_transport_cpu_share  transport seconds / the actor processes' CPU seconds (/proc)
@@ -162,6 +164,7 @@ def main():
         "junction_actor_simulation_seconds_total"
     )
     lag = "junction_learner_policy_lag_versions"
+    trained = "junction_learner_trained_policy_lag_versions"
     report = {
         "actors": args.actors,
         "window_s": round(dt, 1),
@@ -171,6 +174,8 @@ def main():
         "policy_versions_per_min": round(rate("junction_learner_policy_version") * 60, 1),
         "policy_lag_p50": quantile(before["learner"], after["learner"], lag, 0.5),
         "policy_lag_p99": quantile(before["learner"], after["learner"], lag, 0.99),
+        "trained_lag_p50": quantile(before["learner"], after["learner"], trained, 0.5),
+        "trained_lag_p99": quantile(before["learner"], after["learner"], trained, 0.99),
         "stale_fragments": total(after["learner"], "junction_learner_fragments_dropped_total")
         - total(before["learner"], "junction_learner_fragments_dropped_total"),
         "learner_utilisation": round(rate("junction_learner_update_duration_seconds_sum"), 3),
