@@ -7,7 +7,7 @@
 //! | 1 | distance to the right edge | d / 18 m |
 //! | 2 | heading error to the current lane, Δθ ∈ (−π, π] | (Δθ/π + 1) / 2 |
 //! | 3 | speed | (km/h + 1) / 81 |
-//! | 4 | steering (fraction of 40°, + = right) | (δ + 1) / 2 |
+//! | 4 | steering: where the wheel points (fraction of 40°, + = right; lags the action with `vehicle.steering_time_constant`) | (δ + 1) / 2 |
 //! | 5, 6 | last action: steering, throttle/brake | (a + 1) / 2 |
 //! | 7 | yaw rate ω (rad/s, + = counter-clockwise) | (ω / (π/2) + 1) / 2 |
 //! | 8 | lateral offset from the lane centre (+ = left) | (2·lat/lane width + 1) / 2 |
@@ -56,7 +56,7 @@ pub fn write_state(out: &mut [f32], car: &Kinematics, at: &RoutePosition, lanes:
     out[1] = unit((lane.right_edge + at.lateral) / EDGE_SCALE);
     out[2] = signed_unit(super::angle::wrap(car.heading - lane.heading(at.s)) / PI);
     out[3] = unit((car.speed * 3.6 + 1.0) / (MAX_SPEED * 3.6 + 1.0));
-    out[4] = signed_unit(car.steer);
+    out[4] = signed_unit(car.wheel);
     out[5] = signed_unit(car.steer);
     out[6] = signed_unit(car.throttle);
     out[7] = signed_unit(car.yaw_rate() / YAW_RATE_SCALE);

@@ -11,13 +11,16 @@
 //! Energy: the work of the engine force, `∫ F_engine · v dt`, in kJ. Regeneration is off:
 //! braking and coasting return nothing, and a car standing still uses nothing.
 //!
-//! Lateral model: yaw rate = v · tan(δ) / wheelbase, steering applied at once. Following the
-//! paper (§3.3), the steering action +1 turns fully right, so δ = −steer · 40°.
+//! Lateral model: yaw rate = v · tan(δ) / wheelbase. Following the paper (§3.3), the steering
+//! action +1 turns fully right, so δ = −wheel · 40°, where the wheel angle follows the steering
+//! action at once, or (with [`Dynamics::steering_time_constant`]) as a first-order lag.
 //!
 //! A kinematic bicycle has no tyres: at 10 m/s full lock turns with 34 m/s² of lateral
-//! acceleration, where MetaDrive's Bullet car slides beyond ≈ 9 m/s². [`Dynamics`] can cap the
-//! yaw rate at `max_lateral_accel / v` (a friction limit: the car runs wide instead of turning
-//! tighter) and sets the braking deceleration; docs/SIMULATOR.md compares both with MetaDrive.
+//! acceleration, where MetaDrive's Bullet car saturates near 6 m/s² and builds its yaw over a
+//! few tenths of a second. [`Dynamics`] can cap the yaw rate at `max_lateral_accel / v` (a
+//! friction limit: the car runs wide instead of turning tighter), lag the wheel behind the
+//! steering action, and set the braking deceleration; docs/SIMULATOR.md compares them with
+//! MetaDrive's measured car.
 
 use parry2d::math::Vec2;
 
@@ -41,6 +44,9 @@ pub struct Dynamics {
     pub max_lateral_accel: f32,
     /// Deceleration of full braking, m/s² (brake force = this × mass).
     pub max_brake_decel: f32,
+    /// Time constant of the wheel's first-order lag behind the steering action, seconds (0:
+    /// the wheel turns at once).
+    pub steering_time_constant: f32,
 }
 
 impl Default for Dynamics {
@@ -49,6 +55,7 @@ impl Default for Dynamics {
         Dynamics {
             max_lateral_accel: 0.0,
             max_brake_decel: 6.0,
+            steering_time_constant: 0.0,
         }
     }
 }
@@ -58,6 +65,7 @@ impl From<&junction_common::config::VehicleConfig> for Dynamics {
         Dynamics {
             max_lateral_accel: c.max_lateral_accel,
             max_brake_decel: c.max_brake_decel,
+            steering_time_constant: c.steering_time_constant,
         }
     }
 }
@@ -71,6 +79,9 @@ pub struct Kinematics {
     /// Last applied action, clipped to [-1, 1].
     pub steer: f32,
     pub throttle: f32,
+    /// Where the wheel points, as a fraction of full lock (+ = right): the steering action
+    /// itself, or lagging behind it.
+    pub wheel: f32,
     pub dynamics: Dynamics,
 }
 
@@ -82,6 +93,7 @@ impl Kinematics {
             speed: speed.clamp(0.0, MAX_SPEED),
             steer: 0.0,
             throttle: 0.0,
+            wheel: 0.0,
             dynamics: Dynamics::default(),
         }
     }
@@ -93,7 +105,7 @@ impl Kinematics {
     /// Yaw rate (rad/s, counter-clockwise positive) for the current speed and steering, within
     /// the lateral-acceleration limit.
     pub fn yaw_rate(&self) -> f32 {
-        let geometric = self.speed * (-self.steer * MAX_STEER_RAD).tan() / WHEELBASE;
+        let geometric = self.speed * (-self.wheel * MAX_STEER_RAD).tan() / WHEELBASE;
         let limit = self.dynamics.max_lateral_accel;
         if limit > 0.0 && self.speed > 0.0 {
             let most = limit / self.speed;
@@ -132,8 +144,11 @@ impl Kinematics {
         self.steer = clean(action[0]);
         self.throttle = clean(action[1]);
         let h = dt / substeps.max(1) as f32;
+        let tau = self.dynamics.steering_time_constant;
+        let follow = if tau > 0.0 { 1.0 - (-h / tau).exp() } else { 1.0 };
         let mut energy_j = 0.0;
         for _ in 0..substeps.max(1) {
+            self.wheel += (self.steer - self.wheel) * follow;
             let yaw_rate = self.yaw_rate();
             let speed = (self.speed + self.acceleration(self.speed) * h).clamp(0.0, MAX_SPEED);
             let mean_speed = 0.5 * (self.speed + speed);
@@ -217,7 +232,7 @@ mod tests {
             ..Dynamics::default()
         };
         let fast = Kinematics {
-            steer: 1.0,
+            wheel: 1.0,
             ..Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(tyres)
         };
         // Geometric: 10 · tan(40°) / 2.47 = 3.40 rad/s, 34 m/s² laterally; capped: 0.9 rad/s.
@@ -231,6 +246,32 @@ mod tests {
         let slow = Kinematics { speed: 1.5, ..fast };
         let geometric = -1.5 * MAX_STEER_RAD.tan() / WHEELBASE;
         assert_eq!(slow.yaw_rate(), geometric);
+    }
+
+    #[test]
+    fn a_lagging_wheel_follows_the_steering_action_at_its_time_constant() {
+        let lagging = Dynamics {
+            steering_time_constant: 0.25,
+            ..Dynamics::default()
+        };
+        let mut k = Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(lagging);
+        k.advance([1.0, 0.0], 0.1, 5);
+        // After 0.1 s: 1 − e^(−0.1/0.25) = 0.33 of full lock (exactly, over 5 sub-steps).
+        assert!((k.wheel - (1.0 - (-0.4f32).exp())).abs() < 1e-5, "{}", k.wheel);
+        assert_eq!(k.steer, 1.0, "the action itself is kept");
+        for _ in 0..20 {
+            k.advance([1.0, 0.0], 0.1, 5);
+        }
+        assert!(k.wheel > 0.99);
+        // Step-to-step noise in the action is smoothed: ±1 alternating moves the wheel little.
+        let mut noisy = Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(lagging);
+        for i in 0..20 {
+            noisy.advance([if i % 2 == 0 { 1.0 } else { -1.0 }, 0.0], 0.1, 5);
+            assert!(noisy.wheel.abs() < 0.4, "{}", noisy.wheel);
+        }
+        let mut instant = Kinematics::new(Vec2::ZERO, 0.0, 10.0);
+        instant.advance([0.5, 0.0], 0.1, 5);
+        assert_eq!(instant.wheel, 0.5, "no lag: the wheel is the action");
     }
 
     #[test]
