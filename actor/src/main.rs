@@ -10,8 +10,9 @@ use clap::{Args, Parser, Subcommand};
 use tracing::Instrument;
 
 use junction_actor::metrics::ActorMetrics;
-use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
+use junction_actor::replay::{self, Driver, ReplayOptions};
 use junction_actor::session::ActorOptions;
+use junction_actor::video::VideoWriter;
 use junction_actor::{bench, eval, grpc, shm};
 use junction_common::auth::Token;
 use junction_common::config::{AfterHorizon, ScenarioConfig};
@@ -40,10 +41,10 @@ struct Cli {
 enum Command {
     /// Time the simulator alone (scripted driving) and print one JSON line.
     Bench(BenchArgs),
-    /// Draw an episode of the simulator from above as an animated GIF (and PNG frames):
-    /// roads and lane markings, agents (blue), human drivers (light grey), crashed cars left on
-    /// the road (dark red), and
-    /// brief rings where cars arrive (green), crash (orange) or leave the road (magenta).
+    /// Draw an episode of the simulator from above as an animated GIF, MP4 or WebM (and PNG
+    /// frames): roads and lane markings, agents (blue), human drivers (light grey), crashed
+    /// cars left on the road (dark red), and brief rings where cars arrive (green), crash
+    /// (orange) or leave the road (magenta).
     Render(RenderArgs),
     /// Evaluate a trained policy: every agent takes the policy's mean action, in scenes seeded
     /// apart from training's, until N agent episodes have finished. Prints the paper's metrics
@@ -163,7 +164,9 @@ struct RenderArgs {
     /// Also write every frame as DIR/frame-<step>.png.
     #[arg(long, value_name = "DIR")]
     frames_dir: Option<PathBuf>,
-    /// The animated GIF to write.
+    /// The file to write; its extension picks the format: .gif (an animated GIF), .mp4
+    /// (H.264) or .webm (VP9). MP4 and WebM need ffmpeg on PATH; without it a GIF of the same
+    /// name ending in .gif is written instead (with a warning).
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
 }
@@ -248,8 +251,8 @@ fn main() -> anyhow::Result<()> {
     }
 }
 
-/// `actor render`: checks everything it can before creating the GIF, then streams the frames
-/// into it and prints one JSON line.
+/// `actor render`: checks everything it can before creating the output, then streams the
+/// frames into it and prints one JSON line.
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let scenario = scenarios::load(&args.scenario)?;
     if let Some(slot) = args.lidar {
@@ -273,7 +276,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     }
     let (width, height) = args.size;
     let frame_seconds = scenario.decision_dt * args.every as f32;
-    let mut gif = GifWriter::create(&args.out, width, height, frame_seconds)?;
+    let (mut video, written) = VideoWriter::create(&args.out, width, height, frame_seconds)?;
     let options = ReplayOptions {
         seed: args.seed,
         steps: args.steps,
@@ -283,16 +286,18 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         lidar_slot: args.lidar,
     };
     let summary = replay::run(&scenario, &driver, &options, |step, frame| {
-        gif.write(frame)?;
+        video.write(frame)?;
         if let Some(dir) = &args.frames_dir {
             replay::write_png(&dir.join(format!("frame-{step:06}.png")), frame)?;
         }
         Ok(())
     })?;
-    gif.finish()
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    video
+        .finish()
+        .with_context(|| format!("writing {}", written.path.display()))?;
     let mut report = serde_json::to_value(&summary)?;
-    report["out"] = args.out.display().to_string().into();
+    report["out"] = written.path.display().to_string().into();
+    report["format"] = written.format.name().into();
     println!("{report}");
     Ok(())
 }
