@@ -91,6 +91,21 @@ pub fn find_on_path(name: &str, path: Option<OsString>) -> Option<PathBuf> {
         })
 }
 
+/// Frames per second for ffmpeg as an exact fraction of whole microseconds ("10" for 0.1 s,
+/// "10/3" for 0.3 s): the decimal of an f32 reciprocal would drift.
+fn frame_rate(frame_seconds: f32) -> String {
+    const MICROS: u64 = 1_000_000;
+    let micros = ((f64::from(frame_seconds) * MICROS as f64).round() as u64).max(1);
+    let (mut a, mut b) = (MICROS, micros);
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    match (MICROS / a, micros / a) {
+        (frames, 1) => frames.to_string(),
+        (frames, seconds) => format!("{frames}/{seconds}"),
+    }
+}
+
 /// Frames going into a GIF or an ffmpeg process.
 pub enum VideoWriter {
     Gif(GifWriter),
@@ -196,7 +211,7 @@ impl FfmpegWriter {
             .arg("-video_size")
             .arg(format!("{width}x{height}"))
             .arg("-framerate")
-            .arg(format!("{}", 1.0 / f64::from(frame_seconds)))
+            .arg(frame_rate(frame_seconds))
             .args(["-i", "pipe:0", "-an"])
             // yuv420p needs even sides: pad an odd frame by one pixel.
             .args(["-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2"])
@@ -287,6 +302,13 @@ mod tests {
             .to_string();
         assert!(error.contains("must end in .gif, .mp4 or .webm"), "{error}");
         assert!(VideoFormat::of(Path::new("replay")).is_err());
+    }
+
+    #[test]
+    fn frame_rates_are_exact_fractions() {
+        assert_eq!(frame_rate(0.1), "10");
+        assert_eq!(frame_rate(0.3), "10/3");
+        assert_eq!(frame_rate(2.0), "1/2");
     }
 
     #[test]
