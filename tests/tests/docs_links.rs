@@ -126,8 +126,8 @@ fn every_link_of_the_readme_and_the_docs_resolves() {
     let mut checked = 0;
     let mut linked: BTreeSet<PathBuf> = BTreeSet::new();
     for page in pages() {
-        let text = std::fs::read_to_string(&page)
-            .unwrap_or_else(|e| panic!("{}: {e}", page.display()));
+        let text =
+            std::fs::read_to_string(&page).unwrap_or_else(|e| panic!("{}: {e}", page.display()));
         for target in links(&text) {
             if target.contains("://") || target.starts_with("mailto:") {
                 continue;
@@ -160,7 +160,10 @@ fn every_link_of_the_readme_and_the_docs_resolves() {
         }
     }
     assert!(broken.is_empty(), "broken links:\n{}", broken.join("\n"));
-    assert!(checked > 40, "only {checked} relative links found: is the parser broken?");
+    assert!(
+        checked > 40,
+        "only {checked} relative links found: is the parser broken?"
+    );
 
     // Every page under docs/ is linked from the README or from a page it links to.
     let orphans: Vec<String> = pages()
@@ -168,7 +171,10 @@ fn every_link_of_the_readme_and_the_docs_resolves() {
         .filter(|p| p.starts_with(workspace_root().join("docs")) && !linked.contains(p))
         .map(|p| p.display().to_string())
         .collect();
-    assert!(orphans.is_empty(), "docs pages nothing links to: {orphans:?}");
+    assert!(
+        orphans.is_empty(),
+        "docs pages nothing links to: {orphans:?}"
+    );
 }
 
 #[test]
@@ -179,12 +185,19 @@ fn the_readme_pictures_are_gifs_in_the_repository() {
         .into_iter()
         .filter(|t| t.ends_with(".gif"))
         .collect();
-    assert!(pictures.len() >= 2, "the README shows the intersection and the roundabout: {pictures:?}");
+    assert!(
+        pictures.len() >= 2,
+        "the README shows the intersection and the roundabout: {pictures:?}"
+    );
     for picture in pictures {
         let bytes = std::fs::read(resolve(&readme_path, &picture))
             .unwrap_or_else(|e| panic!("{picture}: {e}"));
         assert_eq!(&bytes[..6], b"GIF89a", "{picture} is not a GIF");
-        assert!(bytes.len() < 3_000_000, "{picture}: {} bytes, keep it small", bytes.len());
+        assert!(
+            bytes.len() < 3_000_000,
+            "{picture}: {} bytes, keep it small",
+            bytes.len()
+        );
     }
 }
 
@@ -193,8 +206,14 @@ fn the_link_parser_finds_links_and_anchors_as_github_makes_them() {
     let text = "See [a](docs/A.md#the-x), ![p](m.gif \"title\") and <img src=\"b.gif\">.\n\
                 `[not](a-link)`\n```\n[nor](this)\n```\n";
     assert_eq!(links(text), ["docs/A.md#the-x", "m.gif", "b.gif"]);
-    let headings = anchors("# Junction\n## Training curves: `progress.jsonl`\n## Faults\n## Faults\n");
-    let expected = ["faults", "faults-1", "junction", "training-curves-progressjsonl"];
+    let headings =
+        anchors("# Junction\n## Training curves: `progress.jsonl`\n## Faults\n## Faults\n");
+    let expected = [
+        "faults",
+        "faults-1",
+        "junction",
+        "training-curves-progressjsonl",
+    ];
     assert_eq!(headings, expected.iter().map(|s| s.to_string()).collect());
     assert_eq!(
         resolve(Path::new("/r/docs/A.md"), "../README.md"),

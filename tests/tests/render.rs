@@ -69,7 +69,11 @@ fn video_formats_go_through_ffmpeg_and_fall_back_to_gif_without_it() {
         let frames = json["frames"].as_u64().unwrap() as usize;
         assert!(frames >= STEPS as usize, "{json}");
         let bytes = std::fs::metadata(&out).unwrap().len() as usize;
-        assert_eq!(bytes, frames * WIDTH * HEIGHT * 4, "{name}: every frame, raw RGBA");
+        assert_eq!(
+            bytes,
+            frames * WIDTH * HEIGHT * 4,
+            "{name}: every frame, raw RGBA"
+        );
         let args = std::fs::read_to_string(&args_file).unwrap();
         let args: Vec<&str> = args.lines().collect();
         for pair in [
@@ -113,7 +117,10 @@ fn video_formats_go_through_ffmpeg_and_fall_back_to_gif_without_it() {
         &dir.path().join("broken.mp4"),
         &format!("{}:/usr/bin:/bin", broken.display()),
     );
-    assert!(!output.status.success(), "a failing ffmpeg must fail the render");
+    assert!(
+        !output.status.success(),
+        "a failing ffmpeg must fail the render"
+    );
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("Unknown encoder libx264"), "{stderr}");
 
