@@ -77,7 +77,9 @@ if ! "$VENV/bin/python" -c "import tensorboard" >/dev/null 2>&1; then
     echo "setup: installing tensorboard $TENSORBOARD_VERSION into $VENV (the TensorBoard read-back test)"
     pip_install "tensorboard==$TENSORBOARD_VERSION"
 fi
-if ! command -v promtool >/dev/null || ! command -v prometheus >/dev/null; then
+# Present means it runs: `command -v` alone also finds a file that cannot be executed.
+runs() { "$1" --version >/dev/null 2>&1; }
+if ! runs promtool || ! runs prometheus; then
     if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null; then
         echo "setup: test tool missing: promtool and prometheus (Debian package 'prometheus'); installing it needs root: sudo apt-get install prometheus" >&2
         exit 1
