@@ -134,9 +134,10 @@ struct BenchArgs {
 struct RenderArgs {
     /// A shipped scenario name (intersection, intersection-metadrive, t-junction,
     /// roundabout, roundabout-metadrive, roundabout-compact-3arm, roundabout-large-5arm,
-    /// tiny-straight) or a scenario TOML file.
-    #[arg(long, default_value = "intersection")]
-    scenario: String,
+    /// tiny-straight) or a scenario TOML file. Default: the scenario the checkpoint was
+    /// trained on (its meta.json), else intersection.
+    #[arg(long)]
+    scenario: Option<String>,
     /// Drive every agent with this policy's deterministic action (a Gaussian policy's mean, a
     /// DQN policy's greedy grid point): a checkpoint directory
     /// (runs/<run>/checkpoints/ckpt-N), a run directory (its newest checkpoint) or a
@@ -254,7 +255,15 @@ fn main() -> anyhow::Result<()> {
 /// `actor render`: checks everything it can before creating the output, then streams the
 /// frames into it and prints one JSON line.
 fn render(args: RenderArgs) -> anyhow::Result<()> {
-    let scenario = scenarios::load(&args.scenario)?;
+    let trained_on = match &args.checkpoint {
+        Some(path) => eval::training_info(&replay::policy_file(path)?)?.1,
+        None => None,
+    };
+    let scenario = match (&args.scenario, trained_on) {
+        (Some(name), _) => scenarios::load(name)?,
+        (None, Some(scenario)) => scenario,
+        (None, None) => scenarios::load("intersection")?,
+    };
     if let Some(slot) = args.lidar {
         anyhow::ensure!(
             slot < scenario.agents,
@@ -298,6 +307,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     let mut report = serde_json::to_value(&summary)?;
     report["out"] = written.path.display().to_string().into();
     report["format"] = written.format.name().into();
+    report["scenario"] = scenario.name.clone().into();
     println!("{report}");
     Ok(())
 }
