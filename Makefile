@@ -1,6 +1,9 @@
 # The two commands a new user needs (see README.md):
-#   make run    set up, build, train locally (learner + 2 local actors over shared memory) for a few minutes
-#   make test   set up, build, run every test (this is what CI runs via .ci/run)
+#   make run    set up (no root: the venv and PyTorch), build, train locally (learner + 2 local
+#               actors over shared memory) for a few minutes
+#   make test   set up with the test tools (scripts/setup.sh --test: stops at once, naming the
+#               package, if one is missing and cannot be installed), build, run every test
+#               (this is what CI runs via .ci/run)
 #   make experiments BUDGET=N   the paper's method × scene × seed grid and its report
 #                               (scripts/experiments.sh documents every knob)
 SHELL := /bin/bash
@@ -12,10 +15,14 @@ export LIBTORCH_USE_PYTORCH := 1
 
 CARGO ?= cargo
 
-.PHONY: setup build run test bench experiments
+.PHONY: setup test-setup build run test bench experiments
 
 setup:
 	@scripts/setup.sh
+
+# Before the build, so a missing test tool stops `make test` in seconds, not after it.
+test-setup:
+	@scripts/setup.sh --test
 
 build: setup
 	$(CARGO) build --release --workspace --bins
@@ -23,7 +30,7 @@ build: setup
 run: build
 	scripts/run-local.sh
 
-test: build
+test: test-setup build
 	$(CARGO) test --release --workspace
 
 bench: build

@@ -1,6 +1,6 @@
 //! The actor side of the gRPC transport: register, follow the policy stream, and push
 //! fragments produced by the rollout thread; reconnect with back-off when the learner goes
-//! away (see README, "Faults"). What happens between registering and sending is the
+//! away (see docs/FAULTS.md). What happens between registering and sending is the
 //! transport-independent `session`.
 
 use std::path::PathBuf;

@@ -13,3 +13,4 @@ pub mod rollout;
 pub mod session;
 pub mod shm;
 pub mod sim;
+pub mod video;

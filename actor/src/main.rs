@@ -10,8 +10,9 @@ use clap::{Args, Parser, Subcommand};
 use tracing::Instrument;
 
 use junction_actor::metrics::ActorMetrics;
-use junction_actor::replay::{self, Driver, GifWriter, ReplayOptions};
+use junction_actor::replay::{self, Driver, ReplayOptions};
 use junction_actor::session::ActorOptions;
+use junction_actor::video::VideoWriter;
 use junction_actor::{bench, eval, grpc, shm};
 use junction_common::auth::Token;
 use junction_common::config::{AfterHorizon, ScenarioConfig};
@@ -40,10 +41,10 @@ struct Cli {
 enum Command {
     /// Time the simulator alone (scripted driving) and print one JSON line.
     Bench(BenchArgs),
-    /// Draw an episode of the simulator from above as an animated GIF (and PNG frames):
-    /// roads and lane markings, agents (blue), human drivers (light grey), crashed cars left on
-    /// the road (dark red), and
-    /// brief rings where cars arrive (green), crash (orange) or leave the road (magenta).
+    /// Draw an episode of the simulator from above as an animated GIF, MP4 or WebM (and PNG
+    /// frames): roads and lane markings, agents (blue), human drivers (light grey), crashed
+    /// cars left on the road (dark red), and brief rings where cars arrive (green), crash
+    /// (orange) or leave the road (magenta).
     Render(RenderArgs),
     /// Evaluate a trained policy: every agent takes the policy's mean action, in scenes seeded
     /// apart from training's, until N agent episodes have finished. Prints the paper's metrics
@@ -133,9 +134,10 @@ struct BenchArgs {
 struct RenderArgs {
     /// A shipped scenario name (intersection, intersection-metadrive, t-junction,
     /// roundabout, roundabout-metadrive, roundabout-compact-3arm, roundabout-large-5arm,
-    /// tiny-straight) or a scenario TOML file.
-    #[arg(long, default_value = "intersection")]
-    scenario: String,
+    /// tiny-straight) or a scenario TOML file. Default: the scenario the checkpoint was
+    /// trained on (its meta.json), else intersection.
+    #[arg(long)]
+    scenario: Option<String>,
     /// Drive every agent with this policy's deterministic action (a Gaussian policy's mean, a
     /// DQN policy's greedy grid point): a checkpoint directory
     /// (runs/<run>/checkpoints/ckpt-N), a run directory (its newest checkpoint) or a
@@ -163,7 +165,9 @@ struct RenderArgs {
     /// Also write every frame as DIR/frame-<step>.png.
     #[arg(long, value_name = "DIR")]
     frames_dir: Option<PathBuf>,
-    /// The animated GIF to write.
+    /// The file to write; its extension picks the format: .gif (an animated GIF), .mp4
+    /// (H.264) or .webm (VP9). MP4 and WebM need ffmpeg on PATH; without it a GIF of the same
+    /// name ending in .gif is written instead (with a warning).
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
 }
@@ -248,10 +252,18 @@ fn main() -> anyhow::Result<()> {
     }
 }
 
-/// `actor render`: checks everything it can before creating the GIF, then streams the frames
-/// into it and prints one JSON line.
+/// `actor render`: checks everything it can before creating the output, then streams the
+/// frames into it and prints one JSON line.
 fn render(args: RenderArgs) -> anyhow::Result<()> {
-    let scenario = scenarios::load(&args.scenario)?;
+    let trained_on = match &args.checkpoint {
+        Some(path) => eval::training_info(&replay::policy_file(path)?)?.1,
+        None => None,
+    };
+    let scenario = match (&args.scenario, trained_on) {
+        (Some(name), _) => scenarios::load(name)?,
+        (None, Some(scenario)) => scenario,
+        (None, None) => scenarios::load("intersection")?,
+    };
     if let Some(slot) = args.lidar {
         anyhow::ensure!(
             slot < scenario.agents,
@@ -273,7 +285,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     }
     let (width, height) = args.size;
     let frame_seconds = scenario.decision_dt * args.every as f32;
-    let mut gif = GifWriter::create(&args.out, width, height, frame_seconds)?;
+    let (mut video, written) = VideoWriter::create(&args.out, width, height, frame_seconds)?;
     let options = ReplayOptions {
         seed: args.seed,
         steps: args.steps,
@@ -283,16 +295,19 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         lidar_slot: args.lidar,
     };
     let summary = replay::run(&scenario, &driver, &options, |step, frame| {
-        gif.write(frame)?;
+        video.write(frame)?;
         if let Some(dir) = &args.frames_dir {
             replay::write_png(&dir.join(format!("frame-{step:06}.png")), frame)?;
         }
         Ok(())
     })?;
-    gif.finish()
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    video
+        .finish()
+        .with_context(|| format!("writing {}", written.path.display()))?;
     let mut report = serde_json::to_value(&summary)?;
-    report["out"] = args.out.display().to_string().into();
+    report["out"] = written.path.display().to_string().into();
+    report["format"] = written.format.name().into();
+    report["scenario"] = scenario.name.clone().into();
     println!("{report}");
     Ok(())
 }

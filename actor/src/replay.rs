@@ -1,7 +1,7 @@
 //! `actor render`: one episode of the pure simulator, driven by the scripted autopilot or by a
 //! checkpoint's policy (its deterministic action: a Gaussian's mean, a Q-policy's greedy grid
 //! point, so a replay is deterministic), drawn frame by frame
-//! and written as an animated GIF and optionally one PNG per frame.
+//! and written as an animated GIF (or a video: `crate::video`) and optionally one PNG per frame.
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;

@@ -13,8 +13,8 @@
 //! stops reading). Weights overflow on purpose: an actor only wants the newest, and a late
 //! joiner gets it from the history.
 //!
-//! Every process uses iceoryx2's built-in defaults (no config file is searched for, so none is
-//! reported missing), keeps its own signal handling, and logs through `tracing`. A process that
+//! Every process uses iceoryx2's built-in defaults with a directory and file prefix per user
+//! (no config file is searched for, so none is reported missing), keeps its own signal handling, and logs through `tracing`. A process that
 //! dies leaves stale resources behind; creating a node removes those of dead nodes, so a
 //! restarted learner or actor starts cleanly.
 
@@ -83,13 +83,27 @@ pub fn failed<E: Debug>(what: impl Into<String>) -> impl FnOnce(E) -> ShmError {
     }
 }
 
-/// iceoryx2's built-in defaults, for every node of this process; also routes its log messages
-/// at warning level and above into `tracing`.
+/// iceoryx2's built-in defaults, for every node of this process, except that each user gets a
+/// directory (`/tmp/iceoryx2-<uid>/`) and file prefix (`iox2_<uid>_` in `/dev/shm`) of their
+/// own: iceoryx2's shared `/tmp/iceoryx2/` belongs to whoever created it first (mode 0750), so
+/// a second user of the host could not serve or join anything. A learner and its actors run as
+/// one user and so agree. Also routes iceoryx2's log messages at warning level and above into
+/// `tracing`.
 fn config() -> &'static Config {
     static CONFIG: OnceLock<Config> = OnceLock::new();
     CONFIG.get_or_init(|| {
         set_log_level(LogLevel::Warn);
-        Config::default()
+        let mut config = Config::default();
+        // SAFETY: getuid has no preconditions and cannot fail.
+        let uid = unsafe { libc::getuid() };
+        // Both are short, plain ASCII: they are valid, and the defaults stay if not.
+        if let Ok(root) = Path::new(format!("/tmp/iceoryx2-{uid}/").as_bytes()) {
+            config.global.set_root_path(&root);
+        }
+        if let Ok(prefix) = FileName::new(format!("iox2_{uid}_").as_bytes()) {
+            config.global.prefix = prefix;
+        }
+        config
     })
 }
 

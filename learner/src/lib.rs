@@ -14,5 +14,6 @@ pub mod security;
 pub mod server;
 pub mod shm;
 pub mod stats;
+pub mod tensorboard;
 pub mod trainer;
 pub mod transport_bench;

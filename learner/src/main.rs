@@ -29,6 +29,7 @@ use junction_learner::report::{self, ReportOptions};
 use junction_learner::security::{self, TokenCheck};
 use junction_learner::server::{LearnerService, Shared};
 use junction_learner::shm::ShmServer;
+use junction_learner::tensorboard::EventWriter;
 use junction_learner::trainer::{Progress, Trainer, weights_message};
 use junction_learner::transport_bench;
 
@@ -439,6 +440,11 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let metrics_addr = metrics_listener.local_addr()?;
     // Clears what an interrupted checkpoint write left behind before anyone is told we serve.
     let checkpointer = Checkpointer::new(checkpoint_dir, config.run.keep_checkpoints)?;
+    let unix_s = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0);
+    let tensorboard = EventWriter::create(&run_dir, unix_s)?;
     let shm_name = &config.server.shm_name;
     let shm = if shm_name.is_empty() {
         None
@@ -523,6 +529,7 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         runtime: tokio::runtime::Handle::current(),
         checkpointer,
         progress_log: run_dir.join("progress.jsonl"),
+        tensorboard,
         stop,
         progress,
         stage,

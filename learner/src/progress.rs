@@ -15,9 +15,10 @@
 //! | `accepted_agent_steps`, `dropped_agent_steps` | agent-steps this process accepted, and those it dropped by reason (`stale`, `shutdown`, `update_failed`): the rest were trained on |
 //! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
 //! | `scene_window.*` | MetaDrive's (CoPO's) rates over the last `run.stats_window_scene_episodes` scene episodes: per scene episode the share of its agents with that outcome, averaged: `scene_episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_agents` (agent episodes per scene episode), `mean_steps` |
-//! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, `kl` and `kl_coef` (the adaptive KL penalty's, 0 without one), and the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions) |
+//! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, `kl` and `kl_coef` (the adaptive KL penalty's, 0 without one), the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions), `lagrange_multiplier` (PPO-Lagrangian's λ, 0 when off), and DQN's `epsilon` and `q_mean` (0 for PPO; DQN's TD loss is `value_loss`) |
 //!
-//! Fields are only ever added: every reader takes a missing field as its default.
+//! Fields are only ever added: every reader takes a missing field as its default. The same
+//! values go to the run's TensorBoard event file (`crate::tensorboard`).
 
 use std::collections::BTreeMap;
 
@@ -73,6 +74,12 @@ pub struct UpdateProgress {
     /// policy the update started from.
     pub lag_mean: f64,
     pub lag_max: u64,
+    /// PPO-Lagrangian's multiplier λ after the update (0 when `[safety]` is off).
+    pub lagrange_multiplier: f64,
+    /// DQN: the exploration rate broadcast after the update and the mean Q(s, a) of its
+    /// samples (0 for PPO).
+    pub epsilon: f64,
+    pub q_mean: f64,
 }
 
 /// The learned (or fixed) LCF angle of the newest update, degrees.

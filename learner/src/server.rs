@@ -12,6 +12,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use junction_common::config::RunConfig;
 use junction_common::fragment::{MAX_NAME_BYTES, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::grpc_codec::is_request_decode_error;
 use junction_common::proto::{self, learner_server::Learner};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
@@ -231,10 +232,9 @@ impl Learner for LearnerService {
                 Ok(Some(message)) => message,
                 Ok(None) => break,
                 Err(status) => {
-                    // tonic reports undecodable bytes as INTERNAL; anything else is the peer
-                    // going away mid-stream, which is not the data's fault.
-                    if status.code() == tonic::Code::Internal && status.message().contains("decode")
-                    {
+                    // Undecodable bytes are refused data; anything else is the peer going
+                    // away mid-stream, which is not the data's fault.
+                    if is_request_decode_error(&status) {
                         shared.reject(REJECT_DECODE, "?", status.message());
                     } else {
                         tracing::debug!(error = %status, "rollout stream ended with an error");

@@ -24,6 +24,7 @@ use crate::metrics::{DROP_SHUTDOWN, DROP_STALE, DROP_UPDATE_FAILED};
 use crate::progress::{LcfProgress, ProgressLine, UpdateProgress};
 use crate::server::Shared;
 use crate::stats::{EpisodeWindow, SceneEpisodeWindow};
+use crate::tensorboard::{EventWriter, Scalars};
 
 /// How long the loop waits for a fragment before it checks budget, progress and stop requests.
 const POLL: Duration = Duration::from_millis(200);
@@ -57,6 +58,8 @@ pub struct Trainer {
     pub runtime: tokio::runtime::Handle,
     pub checkpointer: Checkpointer,
     pub progress_log: PathBuf,
+    /// The progress lines' values as TensorBoard scalars, in the run directory.
+    pub tensorboard: EventWriter,
     pub stop: Arc<AtomicBool>,
     pub progress: Progress,
     /// The curriculum stage of the newest broadcast, so a change is logged once.
@@ -315,6 +318,9 @@ impl Trainer {
             kl_coef: stats.kl_coef,
             lag_mean: lags.iter().sum::<u64>() as f64 / lags.len().max(1) as f64,
             lag_max: lags.iter().copied().max().unwrap_or(0),
+            lagrange_multiplier: stats.lagrange_multiplier,
+            epsilon: stats.epsilon,
+            q_mean: stats.q_mean,
         };
         Ok(Some((stats, progress)))
     }
@@ -368,7 +374,7 @@ impl Trainer {
         Ok(())
     }
 
-    fn report(&self, reporter: &mut Reporter, window: &EpisodeWindow) -> anyhow::Result<()> {
+    fn report(&mut self, reporter: &mut Reporter, window: &EpisodeWindow) -> anyhow::Result<()> {
         let now = Instant::now();
         let dt = now.duration_since(reporter.last).as_secs_f64().max(1e-9);
         let rate = (self.progress.agent_steps - reporter.last_agent_steps) as f64 / dt;
@@ -426,6 +432,9 @@ impl Trainer {
             lcf: reporter.lcf.as_ref().map(LcfSnapshot::to_progress),
             update: reporter.update.clone(),
         };
+        let scalars = Scalars::new(config).of(&line);
+        self.tensorboard
+            .scalars(line.agent_steps, line.unix_s, &scalars)?;
         let line = serde_json::to_string(&line).context("encoding a progress line")?;
         let mut file = OpenOptions::new()
             .create(true)
@@ -610,6 +619,7 @@ mod tests {
             runtime: runtime.handle().clone(),
             checkpointer: Checkpointer::new(dir.join("checkpoints"), 1).unwrap(),
             progress_log: dir.join("progress.jsonl"),
+            tensorboard: EventWriter::create(&dir, 0.0).unwrap(),
             stop: Arc::new(AtomicBool::new(false)),
             progress: Progress::default(),
             stage: Stage {

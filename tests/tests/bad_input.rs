@@ -1,5 +1,5 @@
-//! Hostile or broken actors: malformed fragments get a clear gRPC error, are counted by reason
-//! in /metrics, and the learner keeps serving.
+//! Hostile or broken actors: malformed fragments (and bytes that are no protobuf at all) get a
+//! clear gRPC error, are counted by reason in /metrics, and the learner keeps serving.
 
 use std::time::Duration;
 
@@ -7,7 +7,10 @@ use junction_common::fragment::PROTOCOL_VERSION;
 use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_tests::{TempDir, metric_sum, scrape, start_learner};
+use prost::bytes::{Buf, BufMut};
 use tonic::Code;
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use tonic::codegen::http::uri::PathAndQuery;
 
 const OBS_DIM: usize = 91;
 
@@ -40,6 +43,77 @@ fn valid_fragment() -> proto::RolloutFragment {
         scene_episodes: vec![],
         sim_seconds: 0.2,
     }
+}
+
+/// Sends and receives bytes as they are, so a test can send what no encoder would.
+#[derive(Debug, Clone, Copy, Default)]
+struct RawCodec;
+
+impl Codec for RawCodec {
+    type Encode = Vec<u8>;
+    type Decode = Vec<u8>;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+
+    fn encoder(&mut self) -> RawCodec {
+        RawCodec
+    }
+
+    fn decoder(&mut self) -> RawCodec {
+        RawCodec
+    }
+}
+
+impl Encoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = tonic::Status;
+
+    fn encode(&mut self, item: Vec<u8>, buf: &mut EncodeBuf<'_>) -> Result<(), tonic::Status> {
+        buf.put_slice(&item);
+        Ok(())
+    }
+}
+
+impl Decoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = tonic::Status;
+
+    fn decode(&mut self, buf: &mut DecodeBuf<'_>) -> Result<Option<Vec<u8>>, tonic::Status> {
+        Ok(Some(buf.copy_to_bytes(buf.remaining()).to_vec()))
+    }
+}
+
+/// Field 1 with wire type 7, which protobuf does not have: no message decodes from it.
+const UNDECODABLE: &[u8] = &[0x0f, 0x01];
+
+/// [`UNDECODABLE`] as the only message of the streaming PushRollouts and of the unary Register;
+/// the two refusals.
+async fn send_undecodable(grpc: &str) -> (tonic::Status, tonic::Status) {
+    let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}"))
+        .expect("learner address")
+        .connect()
+        .await
+        .expect("connect");
+    let mut client = tonic::client::Grpc::new(channel);
+    client.ready().await.expect("channel ready");
+    let push = client
+        .client_streaming(
+            tonic::Request::new(tokio_stream::iter(vec![UNDECODABLE.to_vec()])),
+            PathAndQuery::from_static("/junction.v1.Learner/PushRollouts"),
+            RawCodec,
+        )
+        .await
+        .expect_err("undecodable fragment");
+    client.ready().await.expect("channel ready");
+    let register = client
+        .unary(
+            tonic::Request::new(UNDECODABLE.to_vec()),
+            PathAndQuery::from_static("/junction.v1.Learner/Register"),
+            RawCodec,
+        )
+        .await
+        .expect_err("undecodable registration");
+    (push, register)
 }
 
 async fn push(
@@ -141,6 +215,21 @@ async fn invalid_fragments_are_refused_with_clear_errors_and_counted() {
         "{status:?}"
     );
 
+    // Bytes that are no protobuf: the sender's fault, named by RPC.
+    let (undecodable_push, undecodable_register) = send_undecodable(&endpoints.grpc).await;
+    for (status, rpc) in [
+        (&undecodable_push, "PushRollouts"),
+        (&undecodable_register, "Register"),
+    ] {
+        assert_eq!(status.code(), Code::InvalidArgument, "{rpc}: {status:?}");
+        assert!(
+            status.message().starts_with(&format!(
+                "{rpc}: the request message could not be decoded: failed to decode Protobuf message"
+            )),
+            "{rpc}: {status:?}"
+        );
+    }
+
     // The learner still serves: a valid fragment is accepted and Status answers.
     let summary = push(&mut client, valid_fragment())
         .await
@@ -171,6 +260,11 @@ async fn invalid_fragments_are_refused_with_clear_errors_and_counted() {
     assert_eq!(rejected("non_finite"), 2.0);
     assert_eq!(rejected("version"), 1.0);
     assert_eq!(rejected("invariant"), 2.0);
+    assert_eq!(
+        rejected("decode"),
+        1.0,
+        "the undecodable fragment is counted"
+    );
     assert_eq!(metric_sum(&m, "junction_learner_fragments_total"), 1.0);
     assert!(
         learner.log().contains("rejected fragment"),

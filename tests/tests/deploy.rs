@@ -4,7 +4,7 @@
 //! learner's resume-or-start wrappers. The Dockerfile is not built here (no Docker daemon).
 //!
 //! Tools: `promtool` (Debian's `prometheus` package) and `.venv/bin/kubernetes-validate`, both
-//! installed by scripts/setup.sh; YAML is read with the venv's Python (PyYAML comes with
+//! installed by scripts/setup.sh --test; YAML is read with the venv's Python (PyYAML comes with
 //! kubernetes-validate).
 
 use std::os::unix::fs::PermissionsExt;
@@ -35,7 +35,7 @@ fn venv_tool(name: &str) -> PathBuf {
     let path = workspace_root().join(".venv/bin").join(name);
     assert!(
         path.exists(),
-        "{} is missing: run scripts/setup.sh",
+        "{} is missing: run scripts/setup.sh --test",
         path.display()
     );
     path
@@ -45,7 +45,7 @@ fn venv_tool(name: &str) -> PathBuf {
 fn output(command: &mut Command) -> (bool, String) {
     let out = command
         .output()
-        .unwrap_or_else(|e| panic!("cannot run {command:?} ({e}); run scripts/setup.sh"));
+        .unwrap_or_else(|e| panic!("cannot run {command:?} ({e}); run scripts/setup.sh --test"));
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
@@ -74,7 +74,7 @@ fn yaml_documents(path: &Path) -> Vec<Value> {
         .arg(path);
     let out = command
         .output()
-        .unwrap_or_else(|e| panic!("cannot run {command:?} ({e}); run scripts/setup.sh"));
+        .unwrap_or_else(|e| panic!("cannot run {command:?} ({e}); run scripts/setup.sh --test"));
     assert!(
         out.status.success(),
         "{} is not valid YAML:\n{}",

@@ -101,19 +101,12 @@ fn dqn_trains_checkpoints_a_greedy_q_policy_and_resumes_with_its_replay() {
     assert!(stopped_epsilon <= epsilon);
 
     // `actor render` drives the Q-policy's greedy actions: two replays are identical although
-    // the blob's ε would make actors explore.
+    // the blob's ε would make actors explore. Without --scenario it draws the scenario the
+    // checkpoint was trained on.
     let render = |name: &str| {
         let out = dir.path().join(name);
         let status = std::process::Command::new(bin("actor"))
-            .args([
-                "render",
-                "--scenario",
-                "tiny-straight",
-                "--steps",
-                "30",
-                "--size",
-                "64",
-            ])
+            .args(["render", "--steps", "30", "--size", "64"])
             .arg("--checkpoint")
             .arg(&run_dir)
             .arg("--out")
@@ -125,6 +118,9 @@ fn dqn_trains_checkpoints_a_greedy_q_policy_and_resumes_with_its_replay() {
             "actor render failed: {}",
             String::from_utf8_lossy(&status.stderr)
         );
+        let report: serde_json::Value =
+            serde_json::from_slice(&status.stdout).expect("render prints one JSON line");
+        assert_eq!(report["scenario"], "tiny-straight", "{report}");
         std::fs::read(out).expect("the GIF")
     };
     assert_eq!(

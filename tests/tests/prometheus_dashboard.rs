@@ -1,5 +1,5 @@
 //! The metrics and the Grafana dashboard against a real Prometheus server (Debian's
-//! `prometheus` package, installed by scripts/setup.sh): a real learner and actor train
+//! `prometheus` package, installed by scripts/setup.sh --test): a real learner and actor train
 //! briefly, Prometheus scrapes both, every metric family passes `promtool check metrics`, and
 //! every query of every dashboard panel returns data through Prometheus' HTTP API.
 
@@ -88,7 +88,7 @@ fn promtool_check_metrics(exposition: &str) -> Result<(), String> {
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .map_err(|e| format!("promtool not runnable (scripts/setup.sh installs it): {e}"))?;
+        .map_err(|e| format!("promtool not runnable (scripts/setup.sh --test installs it): {e}"))?;
     child
         .stdin
         .take()
