@@ -258,7 +258,7 @@ class MetaDriveScene:
             positions[slot] = vehicle.position
             velocities[slot] = vehicle.velocity
         live = np.flatnonzero(alive)
-        offsets, ids, features = _native.neighbourhoods(positions[live], velocities[live], self.radius)
+        (offsets, ids), features = _native.neighbourhoods(positions[live], velocities[live], self.radius)
         # Back from indices among the live agents to slots.
         self.neighbour_offsets = np.zeros(self.slots + 1, np.uint32)
         counts = np.zeros(self.slots, np.uint32)

@@ -183,6 +183,9 @@ impl VectorEnv {
     }
 }
 
+/// Neighbour lists in CSR form: offsets (one per slot, plus one) and neighbour ids.
+type Csr<'py> = (Bound<'py, PyArray1<u32>>, Bound<'py, PyArray1<u32>>);
+
 /// What one scene's step produced, collected without the GIL.
 struct SceneStep {
     rewards: Vec<f32>,
@@ -395,7 +398,7 @@ impl VectorEnv {
         &self,
         py: Python<'py>,
         scene: usize,
-    ) -> PyResult<(Bound<'py, PyArray1<u32>>, Bound<'py, PyArray1<u32>>)> {
+    ) -> PyResult<Csr<'py>> {
         let (offsets, ids) = self.scene(scene)?.neighbours();
         Ok((
             PyArray1::from_slice(py, offsets),
@@ -457,7 +460,7 @@ fn array3<'py, T: numpy::Element>(
 
 /// Neighbourhoods of cars given by position and velocity (`n × 2` each, metres and m/s):
 /// for every car the others within `radius`, nearest first (ties by index), as the
-/// simulator ships them, and their S_N features. Returns (offsets `n + 1`, ids, features
+/// simulator ships them, and their S_N features. Returns ((offsets `n + 1`, ids), features
 /// `n × 5`). The MetaDrive actor computes its fragments' neighbours with it.
 #[pyfunction]
 fn neighbourhoods<'py>(
@@ -465,11 +468,7 @@ fn neighbourhoods<'py>(
     positions: PyReadonlyArray2<'py, f32>,
     velocities: PyReadonlyArray2<'py, f32>,
     radius: f32,
-) -> PyResult<(
-    Bound<'py, PyArray1<u32>>,
-    Bound<'py, PyArray1<u32>>,
-    Bound<'py, numpy::PyArray2<f32>>,
-)> {
+) -> PyResult<(Csr<'py>, Bound<'py, numpy::PyArray2<f32>>)> {
     let shape = positions.shape().to_vec();
     if shape.len() != 2 || shape[1] != 2 || velocities.shape() != shape.as_slice() {
         return Err(PyValueError::new_err(
@@ -509,8 +508,7 @@ fn neighbourhoods<'py>(
         offsets.push(ids.len() as u32);
     }
     Ok((
-        PyArray1::from_vec(py, offsets),
-        PyArray1::from_vec(py, ids),
+        (PyArray1::from_vec(py, offsets), PyArray1::from_vec(py, ids)),
         array2(py, features, (n, lcf_inputs::FEATURES))?,
     ))
 }
