@@ -6,6 +6,7 @@
 #               (this is what CI runs via .ci/run)
 #   make experiments BUDGET=N   the paper's method × scene × seed grid and its report
 #                               (scripts/experiments.sh documents every knob)
+#   make python                 the `junction` Python package into .venv (docs/PYTHON.md)
 SHELL := /bin/bash
 
 # tch builds against the PyTorch in the project-local venv (scripts/setup.sh installs it).
@@ -15,7 +16,7 @@ export LIBTORCH_USE_PYTORCH := 1
 
 CARGO ?= cargo
 
-.PHONY: setup test-setup build run test bench experiments
+.PHONY: setup test-setup build python run test bench experiments
 
 setup:
 	@scripts/setup.sh
@@ -30,8 +31,13 @@ build: setup
 run: build
 	scripts/run-local.sh
 
-test: test-setup build
+# The Python package (PyO3 module, gRPC stubs, its PyPI dependencies); `make run` skips it.
+python: setup
+	scripts/build-python.sh
+
+test: test-setup build python
 	$(CARGO) test --release --workspace
+	.venv/bin/python -m pytest -q python/tests
 
 bench: build
 	target/release/actor bench --scenario intersection

@@ -7,8 +7,8 @@ use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
 use junction_common::spec::ACTION_DIM;
 
-use crate::sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
-use crate::sim::{Scene, SimError};
+use junction_sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
+use junction_sim::{Scene, SimError};
 
 #[derive(Debug, serde::Serialize)]
 pub struct BenchReport {

@@ -18,7 +18,7 @@ use junction_common::spec::ACTION_DIM;
 
 use crate::replay::Driver;
 use crate::rollout::derive_seed;
-use crate::sim::Scene;
+use junction_sim::Scene;
 
 /// Tags the evaluation's seed stream ("EVAL"); training streams are actor-id byte sums.
 pub const EVAL_SEED_STREAM: u64 = 0x4556_414C_0000_0000;

@@ -1,5 +1,5 @@
-//! Junction's rollout actor: the traffic simulator, batched policy inference and the actor
-//! side of the transports.
+//! Junction's rollout actor: batched policy inference over the simulator's scenes
+//! (`junction-sim`), the actor side of the transports, evaluation and replays.
 
 pub mod bench;
 pub mod eval;
@@ -7,10 +7,8 @@ pub mod grpc;
 pub mod lcf_column;
 pub mod metrics;
 pub mod reconnect;
-pub mod render;
 pub mod replay;
 pub mod rollout;
 pub mod session;
 pub mod shm;
-pub mod sim;
 pub mod video;

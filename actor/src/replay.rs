@@ -17,9 +17,9 @@ use junction_common::policy::{self, Policy, PolicyMeta};
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::lcf_column::blob_distribution;
-use crate::render::{Flashes, Frame, Renderer};
-use crate::sim::Scene;
-use crate::sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
+use junction_sim::Scene;
+use junction_sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
+use junction_sim::render::{Flashes, Frame, Renderer};
 
 /// The file holding a checkpoint's policy weights (see the learner's checkpoint layout).
 const POLICY_FILE: &str = "policy.safetensors";

@@ -15,7 +15,7 @@ use junction_common::spec::ACTION_DIM;
 use junction_common::weights::WeightsError;
 
 use crate::lcf_column::LcfColumn;
-use crate::sim::{Scene, SimError};
+use junction_sim::{Scene, SimError};
 
 /// Where the time of a fragment went, for the actor's metrics.
 #[derive(Debug, Default, Clone, Copy)]

@@ -11,7 +11,7 @@ use std::process::{Child, ChildStdin, Command, Stdio};
 
 use anyhow::{Context, bail, ensure};
 
-use crate::render::Frame;
+use junction_sim::render::Frame;
 use crate::replay::GifWriter;
 
 /// The encoder program looked up on PATH.

@@ -11,127 +11,28 @@
 
 use crate::{lcf, proto};
 
-/// Wire protocol version; every message carries it and peers refuse others.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub use crate::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+pub use crate::spec::{
+    MAX_ACTION_DIM, MAX_AGENTS, MAX_NAME_BYTES, MAX_OBS_DIM, MAX_STEPS, PROTOCOL_VERSION,
+};
 
-/// Upper bounds that keep a hostile header from asking for absurd allocations.
-pub const MAX_STEPS: usize = 100_000;
-pub const MAX_AGENTS: usize = 10_000;
-pub const MAX_OBS_DIM: usize = 65_536;
-pub const MAX_ACTION_DIM: usize = 64;
-/// Longest actor id, actor name or scenario name accepted from a peer, in bytes.
-pub const MAX_NAME_BYTES: usize = 256;
-
-/// How an agent's episode ended (paper §4.2, CoPO's metrics).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Outcome {
-    Success = 0,
-    Crash = 1,
-    OutOfRoad = 2,
-    Timeout = 3,
-}
-
-impl Outcome {
-    pub const ALL: [Outcome; 4] = [
-        Outcome::Success,
-        Outcome::Crash,
-        Outcome::OutOfRoad,
-        Outcome::Timeout,
-    ];
-
-    pub fn label(self) -> &'static str {
-        match self {
-            Outcome::Success => "success",
-            Outcome::Crash => "crash",
-            Outcome::OutOfRoad => "out_of_road",
-            Outcome::Timeout => "timeout",
-        }
-    }
-
-    pub fn from_code(code: u32) -> Option<Outcome> {
-        Outcome::ALL.into_iter().find(|o| *o as u32 == code)
+fn scene_episode_from_proto(e: &proto::SceneEpisodeStats) -> SceneEpisodeStats {
+    SceneEpisodeStats {
+        steps: e.steps,
+        successes: e.successes,
+        crashes: e.crashes,
+        out_of_road: e.out_of_road,
+        timeouts: e.timeouts,
     }
 }
 
-/// Statistics of one finished agent episode.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct EpisodeStats {
-    pub outcome: Outcome,
-    /// Decision steps the agent lived.
-    pub length: u32,
-    pub total_reward: f32,
-    /// Mean and max of |longitudinal acceleration| over the episode, m/s².
-    pub mean_abs_accel: f32,
-    pub max_abs_accel: f32,
-    pub collisions: u32,
-    pub energy_kj: f32,
-    /// Sum of the episode's per-step costs (what a cost limit constrains).
-    pub total_cost: f32,
-}
-
-/// One scene episode (MetaDrive's environment episode), by the outcomes of the agent episodes
-/// that ended in it: the unit of MetaDrive's success rate.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct SceneEpisodeStats {
-    /// Scene steps from the reset to the end.
-    pub steps: u32,
-    pub successes: u32,
-    pub crashes: u32,
-    pub out_of_road: u32,
-    pub timeouts: u32,
-}
-
-impl SceneEpisodeStats {
-    pub fn record(&mut self, outcome: Outcome) {
-        let count = match outcome {
-            Outcome::Success => &mut self.successes,
-            Outcome::Crash => &mut self.crashes,
-            Outcome::OutOfRoad => &mut self.out_of_road,
-            Outcome::Timeout => &mut self.timeouts,
-        };
-        *count = count.saturating_add(1);
-    }
-
-    /// Agent episodes that ended in the scene episode.
-    pub fn agents(&self) -> u64 {
-        [self.successes, self.crashes, self.out_of_road, self.timeouts]
-            .iter()
-            .map(|&c| u64::from(c))
-            .sum()
-    }
-
-    /// The share of those agent episodes that ended with `outcome` (0 without any).
-    pub fn share(&self, outcome: Outcome) -> f64 {
-        let count = match outcome {
-            Outcome::Success => self.successes,
-            Outcome::Crash => self.crashes,
-            Outcome::OutOfRoad => self.out_of_road,
-            Outcome::Timeout => self.timeouts,
-        };
-        match self.agents() {
-            0 => 0.0,
-            n => f64::from(count) / n as f64,
-        }
-    }
-
-    fn from_proto(e: &proto::SceneEpisodeStats) -> Self {
-        SceneEpisodeStats {
-            steps: e.steps,
-            successes: e.successes,
-            crashes: e.crashes,
-            out_of_road: e.out_of_road,
-            timeouts: e.timeouts,
-        }
-    }
-
-    fn to_proto(self) -> proto::SceneEpisodeStats {
-        proto::SceneEpisodeStats {
-            steps: self.steps,
-            successes: self.successes,
-            crashes: self.crashes,
-            out_of_road: self.out_of_road,
-            timeouts: self.timeouts,
-        }
+fn scene_episode_to_proto(e: SceneEpisodeStats) -> proto::SceneEpisodeStats {
+    proto::SceneEpisodeStats {
+        steps: e.steps,
+        successes: e.successes,
+        crashes: e.crashes,
+        out_of_road: e.out_of_road,
+        timeouts: e.timeouts,
     }
 }
 
@@ -165,43 +66,38 @@ pub struct RolloutFragment {
     pub sim_seconds: f32,
 }
 
-impl EpisodeStats {
-    fn decode_all(episodes: &[proto::EpisodeStats]) -> Result<Vec<EpisodeStats>, FragmentError> {
-        episodes
-            .iter()
-            .enumerate()
-            .map(|(i, e)| {
-                let outcome = Outcome::from_code(e.outcome).ok_or_else(|| {
-                    FragmentError::Invariant(format!(
-                        "episode {i} has unknown outcome {}",
-                        e.outcome
-                    ))
-                })?;
-                Ok(EpisodeStats {
-                    outcome,
-                    length: e.length,
-                    total_reward: e.total_reward,
-                    mean_abs_accel: e.mean_abs_accel,
-                    max_abs_accel: e.max_abs_accel,
-                    collisions: e.collisions,
-                    energy_kj: e.energy_kj,
-                    total_cost: e.total_cost,
-                })
+fn decode_episodes(episodes: &[proto::EpisodeStats]) -> Result<Vec<EpisodeStats>, FragmentError> {
+    episodes
+        .iter()
+        .enumerate()
+        .map(|(i, e)| {
+            let outcome = Outcome::from_code(e.outcome).ok_or_else(|| {
+                FragmentError::Invariant(format!("episode {i} has unknown outcome {}", e.outcome))
+            })?;
+            Ok(EpisodeStats {
+                outcome,
+                length: e.length,
+                total_reward: e.total_reward,
+                mean_abs_accel: e.mean_abs_accel,
+                max_abs_accel: e.max_abs_accel,
+                collisions: e.collisions,
+                energy_kj: e.energy_kj,
+                total_cost: e.total_cost,
             })
-            .collect()
-    }
+        })
+        .collect()
+}
 
-    fn to_proto(self) -> proto::EpisodeStats {
-        proto::EpisodeStats {
-            outcome: self.outcome as u32,
-            length: self.length,
-            total_reward: self.total_reward,
-            mean_abs_accel: self.mean_abs_accel,
-            max_abs_accel: self.max_abs_accel,
-            collisions: self.collisions,
-            energy_kj: self.energy_kj,
-            total_cost: self.total_cost,
-        }
+fn episode_to_proto(e: EpisodeStats) -> proto::EpisodeStats {
+    proto::EpisodeStats {
+        outcome: e.outcome as u32,
+        length: e.length,
+        total_reward: e.total_reward,
+        mean_abs_accel: e.mean_abs_accel,
+        max_abs_accel: e.max_abs_accel,
+        collisions: e.collisions,
+        energy_kj: e.energy_kj,
+        total_cost: e.total_cost,
     }
 }
 
@@ -470,8 +366,8 @@ impl RolloutFragment {
         }
         let dones = flags("dones", &msg.dones)?;
         let alive = flags("alive", &msg.alive)?;
-        let episodes = EpisodeStats::decode_all(&msg.episodes)?;
-        let human_episodes = EpisodeStats::decode_all(&msg.human_episodes)?;
+        let episodes = decode_episodes(&msg.episodes)?;
+        let human_episodes = decode_episodes(&msg.human_episodes)?;
         let fragment = RolloutFragment {
             actor_id: msg.actor_id,
             sequence: msg.sequence,
@@ -497,7 +393,7 @@ impl RolloutFragment {
             scene_episodes: msg
                 .scene_episodes
                 .iter()
-                .map(SceneEpisodeStats::from_proto)
+                .map(scene_episode_from_proto)
                 .collect(),
             sim_seconds: msg.sim_seconds,
         };
@@ -528,20 +424,16 @@ impl RolloutFragment {
             neighbour_offsets: self.neighbour_offsets,
             neighbour_ids: self.neighbour_ids,
             lcf_features: self.lcf_features,
-            episodes: self
-                .episodes
-                .into_iter()
-                .map(EpisodeStats::to_proto)
-                .collect(),
+            episodes: self.episodes.into_iter().map(episode_to_proto).collect(),
             human_episodes: self
                 .human_episodes
                 .into_iter()
-                .map(EpisodeStats::to_proto)
+                .map(episode_to_proto)
                 .collect(),
             scene_episodes: self
                 .scene_episodes
                 .into_iter()
-                .map(SceneEpisodeStats::to_proto)
+                .map(scene_episode_to_proto)
                 .collect(),
             sim_seconds: self.sim_seconds,
         }

@@ -1,16 +1,8 @@
 //! Local coordination (paper §3.2, CoPO): the neighbourhood reward r_N, the global reward r_G,
 //! the coordinated reward r_C = α·cos φ·r_i + β·sin φ·r_N, CoPO's per-agent LCF distribution
 //! (sampled by actors, appended to the observation), and the neighbourhood features S_N(i,t)
-//! that the paper's dynamic LCF maps to an angle φ. The simulator computes S_N for every agent
-//! and step and ships it in each `RolloutFragment`; this module owns its layout.
-//!
-//! | index | feature | normalisation (every value in [0, 1]) |
-//! |---|---|---|
-//! | 0 | neighbours within d_n | count / 20, capped at 1 |
-//! | 1 | mean distance to them | d / d_n (1 when alone) |
-//! | 2 | distance to the nearest | d / d_n (1 when alone) |
-//! | 3 | mean relative speed ‖v_j − v_i‖ | / (2 · 80 km/h) |
-//! | 4 | mean closing speed −d‖p_j − p_i‖/dt (+ = approaching) | (c / (2 · 80 km/h) + 1) / 2 (½ when alone) |
+//! that the paper's dynamic LCF maps to an angle φ (computed by the simulator and shipped in
+//! each `RolloutFragment`; `lcf_inputs` owns their layout and CoPO's φ column encoding).
 
 use std::borrow::Cow;
 use std::collections::BTreeMap;
@@ -21,12 +13,9 @@ use rand_distr::StandardNormal;
 use crate::fragment::RolloutFragment;
 use crate::weights::WeightsError;
 
-/// Values per agent and step.
-pub const FEATURES: usize = 5;
-/// Neighbour count at which feature 0 saturates.
-const COUNT_SCALE: f32 = 20.0;
-/// Relative speeds are at most twice the top speed (80 km/h).
-const SPEED_SCALE: f32 = 2.0 * 80.0 / 3.6;
+pub use crate::lcf_inputs::{
+    FEATURES, MAX_PHI_DEG, Motion, neighbourhood_features, phi_from_observation, phi_observation,
+};
 
 /// r_C = α·cos φ·r_i + β·sin φ·r_N: φ = 0 is selfish (IPPO), φ = 90° fully cooperative.
 pub fn coordinated_reward(
@@ -141,9 +130,6 @@ pub fn neighbour_bucket(neighbours: usize) -> usize {
     }
 }
 
-/// The largest |φ|, degrees (CoPO's range: fully cooperative to fully competitive).
-pub const MAX_PHI_DEG: f32 = 90.0;
-
 /// CoPO's LCF distribution: every agent draws its angle φ ~ N(μ, σ), clipped to ±90°, when it
 /// spawns, keeps it for its whole episode and sees it as one more observation value (the last
 /// one, [`phi_observation`]). The learner sends the current (μ, σ) in the metadata of every
@@ -159,7 +145,7 @@ impl LcfDistribution {
     pub const MEAN_KEY: &'static str = "lcf_mean_deg";
     pub const STD_KEY: &'static str = "lcf_std_deg";
     /// Observation values the LCF adds to the scenario's.
-    pub const OBS_COLUMNS: usize = 1;
+    pub const OBS_COLUMNS: usize = crate::spec::LCF_OBS_COLUMNS;
 
     pub fn to_metadata(self) -> BTreeMap<String, String> {
         // f32's Display is the shortest text that parses back to the same value.
@@ -193,65 +179,6 @@ impl LcfDistribution {
         let z: f32 = rng.sample(StandardNormal);
         (self.mean_deg + self.std_deg * z).clamp(-MAX_PHI_DEG, MAX_PHI_DEG)
     }
-}
-
-/// The observation value of an LCF angle: (φ/90° + 1)/2, in [0, 1] like every other value
-/// (CoPO's encoding).
-pub fn phi_observation(phi_deg: f32) -> f32 {
-    (phi_deg / MAX_PHI_DEG + 1.0) / 2.0
-}
-
-/// The angle, degrees, an observation value [`phi_observation`] encodes.
-pub fn phi_from_observation(value: f32) -> f32 {
-    (2.0 * value - 1.0) * MAX_PHI_DEG
-}
-
-/// A car's position and velocity, metres and m/s in the world frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Motion {
-    pub position: [f32; 2],
-    pub velocity: [f32; 2],
-}
-
-/// S_N of the agent `ego` given its neighbours within `radius` (all others, already filtered).
-pub fn neighbourhood_features(
-    ego: Motion,
-    neighbours: impl Iterator<Item = Motion>,
-    radius: f32,
-) -> [f32; FEATURES] {
-    let (mut count, mut distance_sum, mut nearest) = (0usize, 0.0f32, f32::INFINITY);
-    let (mut relative_speed_sum, mut closing_sum) = (0.0f32, 0.0f32);
-    for other in neighbours {
-        let dp = [
-            other.position[0] - ego.position[0],
-            other.position[1] - ego.position[1],
-        ];
-        let dv = [
-            other.velocity[0] - ego.velocity[0],
-            other.velocity[1] - ego.velocity[1],
-        ];
-        let distance = dp[0].hypot(dp[1]);
-        count += 1;
-        distance_sum += distance;
-        nearest = nearest.min(distance);
-        relative_speed_sum += dv[0].hypot(dv[1]);
-        if distance > 1e-6 {
-            closing_sum -= (dp[0] * dv[0] + dp[1] * dv[1]) / distance;
-        }
-    }
-    if count == 0 {
-        return [0.0, 1.0, 1.0, 0.0, 0.5];
-    }
-    let n = count as f32;
-    let scale = radius.max(1e-6);
-    let unit = |x: f32| x.clamp(0.0, 1.0);
-    [
-        unit(n / COUNT_SCALE),
-        unit(distance_sum / n / scale),
-        unit(nearest / scale),
-        unit(relative_speed_sum / n / SPEED_SCALE),
-        unit((closing_sum / n / SPEED_SCALE + 1.0) / 2.0),
-    ]
 }
 
 #[cfg(test)]
@@ -376,51 +303,5 @@ mod tests {
         let samples: Vec<f32> = (0..1000).map(|_| wide.sample(&mut rng)).collect();
         assert!(samples.iter().all(|p| p.abs() <= 90.0));
         assert!(samples.contains(&90.0), "clipped at 90°");
-        // The observation encoding maps ±90° to the ends of [0, 1] and back.
-        assert_eq!(phi_observation(-90.0), 0.0);
-        assert_eq!(phi_observation(0.0), 0.5);
-        assert_eq!(phi_observation(90.0), 1.0);
-        assert_eq!(phi_from_observation(phi_observation(45.0)), 45.0);
-    }
-
-    fn car(x: f32, y: f32, vx: f32, vy: f32) -> Motion {
-        Motion {
-            position: [x, y],
-            velocity: [vx, vy],
-        }
-    }
-
-    #[test]
-    fn alone_is_far_and_still() {
-        let f = neighbourhood_features(car(0.0, 0.0, 5.0, 0.0), std::iter::empty(), 40.0);
-        assert_eq!(f, [0.0, 1.0, 1.0, 0.0, 0.5]);
-    }
-
-    #[test]
-    fn two_neighbours_by_hand() {
-        let ego = car(0.0, 0.0, 10.0, 0.0);
-        // Ahead at 10 m and stopped: closing at 10 m/s, relative speed 10.
-        // Left at 30 m driving the same way: not closing, relative speed 0.
-        let others = [car(10.0, 0.0, 0.0, 0.0), car(0.0, 30.0, 10.0, 0.0)];
-        let f = neighbourhood_features(ego, others.into_iter(), 40.0);
-        let expected = [
-            2.0 / 20.0,
-            20.0 / 40.0,
-            10.0 / 40.0,
-            5.0 / SPEED_SCALE,
-            (5.0 / SPEED_SCALE + 1.0) / 2.0,
-        ];
-        for (got, want) in f.iter().zip(expected) {
-            assert!((got - want).abs() < 1e-6, "{f:?} vs {expected:?}");
-        }
-    }
-
-    #[test]
-    fn a_crowd_saturates_and_receding_cars_read_below_a_half() {
-        let ego = car(0.0, 0.0, 0.0, 0.0);
-        let crowd = (0..30).map(|k| car(5.0 + k as f32, 0.0, 8.0, 0.0));
-        let f = neighbourhood_features(ego, crowd, 40.0);
-        assert_eq!(f[0], 1.0);
-        assert!(f[4] < 0.5, "cars driving away are not closing: {f:?}");
     }
 }

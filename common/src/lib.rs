@@ -3,19 +3,20 @@
 //! with their confidence intervals. Both `actor` and `learner` depend on this crate and never
 //! on each other.
 
+// The pure part lives in `junction-core` (so the simulator builds without libtorch); its
+// modules are part of this crate's vocabulary under the same names.
+pub use junction_core::{
+    action_grid, confidence, config, episode, evaluation, lcf_inputs, scenarios, spec,
+};
+
 pub mod auth;
-pub mod confidence;
-pub mod config;
-pub mod evaluation;
 pub mod fragment;
 pub mod grpc_codec;
 pub mod lcf;
 pub mod policy;
 pub mod q_policy;
-pub mod scenarios;
 pub mod shm;
 pub mod shm_layout;
-pub mod spec;
 pub mod telemetry;
 pub mod weights;
 

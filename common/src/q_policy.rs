@@ -22,82 +22,29 @@ use crate::policy::{
 use crate::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 use crate::weights::{self, Decoded, WeightsError};
 
-/// Most grid points a Q-policy may have (a hostile blob must not ask for a huge output layer).
-pub const MAX_GRID_ACTIONS: usize = 4096;
+pub use crate::action_grid::{ActionGrid, GridError, MAX_GRID_ACTIONS};
 
-/// The discrete actions: every steering value with every throttle value.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ActionGrid {
-    steering: Vec<f32>,
-    throttle: Vec<f32>,
+/// A grid's values as blob metadata (`grid_steering`, `grid_throttle`): comma-separated.
+fn grid_values_to_meta(values: &[f32]) -> String {
+    values
+        .iter()
+        .map(f32::to_string)
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error(
-    "an action grid needs 1 to {MAX_GRID_ACTIONS} points from steering and throttle values \
-     that each lie in [-1, 1] and increase strictly"
-)]
-pub struct GridError;
-
-impl ActionGrid {
-    pub fn new(steering: Vec<f32>, throttle: Vec<f32>) -> Result<Self, GridError> {
-        let valid = |values: &[f32]| {
-            !values.is_empty()
-                && values.iter().all(|v| (-1.0..=1.0).contains(v))
-                && values.windows(2).all(|w| w[0] < w[1])
-        };
-        let points = steering.len().saturating_mul(throttle.len());
-        if !valid(&steering) || !valid(&throttle) || points > MAX_GRID_ACTIONS {
-            return Err(GridError);
-        }
-        Ok(ActionGrid { steering, throttle })
-    }
-
-    /// Number of discrete actions.
-    pub fn len(&self) -> usize {
-        self.steering.len() * self.throttle.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// `[steering, throttle_brake]` of action `index` (< `len()`).
-    pub fn action(&self, index: usize) -> [f32; 2] {
-        let n = self.steering.len();
-        [self.steering[index % n], self.throttle[index / n]]
-    }
-
-    /// The index of `action` if it is exactly a grid point (what actors apply and ship).
-    pub fn index_of(&self, action: &[f32]) -> Option<usize> {
-        let [steering, throttle] = action else {
-            return None;
-        };
-        let s = self.steering.iter().position(|v| v == steering)?;
-        let t = self.throttle.iter().position(|v| v == throttle)?;
-        Some(t * self.steering.len() + s)
-    }
-
-    fn to_meta(values: &[f32]) -> String {
-        values
-            .iter()
-            .map(f32::to_string)
-            .collect::<Vec<_>>()
-            .join(",")
-    }
-
-    fn from_meta(decoded: &Decoded) -> Result<Self, WeightsError> {
-        let bad = || WeightsError::Metadata {
-            key: "grid_steering/grid_throttle".into(),
-        };
-        let parse = |key: &str| -> Result<Vec<f32>, WeightsError> {
-            let text: String = decoded.meta(key)?;
-            text.split(',')
-                .map(|v| v.parse::<f32>().map_err(|_| bad()))
-                .collect()
-        };
-        ActionGrid::new(parse("grid_steering")?, parse("grid_throttle")?).map_err(|_| bad())
-    }
+/// The grid a blob's metadata describes.
+fn grid_from_meta(decoded: &Decoded) -> Result<ActionGrid, WeightsError> {
+    let bad = || WeightsError::Metadata {
+        key: "grid_steering/grid_throttle".into(),
+    };
+    let parse = |key: &str| -> Result<Vec<f32>, WeightsError> {
+        let text: String = decoded.meta(key)?;
+        text.split(',')
+            .map(|v| v.parse::<f32>().map_err(|_| bad()))
+            .collect()
+    };
+    ActionGrid::new(parse("grid_steering")?, parse("grid_throttle")?).map_err(|_| bad())
 }
 
 /// Q(s, ·) over the grid from an MLP on normalised observations; acts ε-greedily.
@@ -227,7 +174,7 @@ impl QPolicy {
         let meta = PolicyMeta::read(&decoded)?;
         let obs_dim = obs_dim_from_meta(&decoded)?;
         let hidden = hidden_from_meta(&decoded)?;
-        let grid = ActionGrid::from_meta(&decoded)?;
+        let grid = grid_from_meta(&decoded)?;
         let epsilon: f64 = decoded.meta("epsilon")?;
         let dueling: bool = decoded.meta("dueling")?;
         if !(0.0..=1.0).contains(&epsilon) {
@@ -247,7 +194,7 @@ impl QPolicy {
     pub fn load_bytes(&mut self, bytes: &[u8]) -> Result<PolicyMeta, WeightsError> {
         let mut decoded = Decoded::decode(bytes)?;
         let meta = PolicyMeta::read(&decoded)?;
-        if ActionGrid::from_meta(&decoded)? != self.grid {
+        if grid_from_meta(&decoded)? != self.grid {
             return Err(WeightsError::Metadata {
                 key: "grid_steering/grid_throttle (another grid than the configured one)".into(),
             });
@@ -321,11 +268,11 @@ impl Policy for QPolicy {
             ("hidden".to_string(), hidden_to_meta(&self.hidden)),
             (
                 "grid_steering".to_string(),
-                ActionGrid::to_meta(&self.grid.steering),
+                grid_values_to_meta(self.grid.steering()),
             ),
             (
                 "grid_throttle".to_string(),
-                ActionGrid::to_meta(&self.grid.throttle),
+                grid_values_to_meta(self.grid.throttle()),
             ),
             ("epsilon".to_string(), self.epsilon.to_string()),
             ("dueling".to_string(), self.dueling.to_string()),

@@ -127,13 +127,7 @@ pub enum Side {
     Actor,
 }
 
-/// A base name for the services: 1 to 200 letters, digits, '-', '_' or '.'.
-pub fn is_valid_name(base: &str) -> bool {
-    (1..=200).contains(&base.len())
-        && base
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-}
+pub use crate::config::is_valid_shm_name as is_valid_name;
 
 /// The three services of base name `base`.
 pub struct Names {

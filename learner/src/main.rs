@@ -12,7 +12,7 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::TcpListenerStream;
 use tonic::service::interceptor::InterceptedService;
 
-use junction_common::config::{DEFAULT_TOML, DeviceChoice, Layer, RunConfig};
+use junction_common::config::{DEFAULT_TOML, DeviceChoice, Layer, RunConfig, Simulator};
 use junction_common::proto::learner_server::LearnerServer;
 use junction_common::scenarios;
 use junction_common::spec::OBS_LAYOUT_VERSION;
@@ -387,6 +387,13 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         bail!(
             "--local-actor-metrics-port {port}: {} actors need ports up to 65535",
             args.local_actors
+        );
+    }
+    if args.local_actors > 0 && config.scenario.simulator == Simulator::Metadrive {
+        bail!(
+            "--local-actors starts Junction actors, and scenario {:?} runs on MetaDrive: start \
+             `python -m junction.metadrive_actor --learner http://HOST:PORT` instead (docs/PYTHON.md)",
+            config.scenario.name
         );
     }
     if args.local_actors > 0 && config.server.shm_name.is_empty() {

@@ -81,6 +81,7 @@ pub struct RunSection {
 #[serde(deny_unknown_fields)]
 pub struct ScenarioConfig {
     pub name: String,
+    pub simulator: Simulator,
     pub kind: SceneKind,
     pub traffic: Traffic,
     pub agents: usize,
@@ -100,6 +101,18 @@ pub struct ScenarioConfig {
     pub vehicle: VehicleConfig,
     pub reward: RewardConfig,
     pub cost: CostConfig,
+}
+
+/// Which simulator runs a scenario's scenes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Simulator {
+    /// This project's (`sim/`): every key of the scenario applies.
+    Junction,
+    /// MetaDrive's own multi-agent intersection or roundabout (by `kind`), run by the Python
+    /// MetaDrive actor (`python -m junction.metadrive_actor`); docs/PYTHON.md lists the keys it
+    /// reads. Rust actors refuse such a scenario.
+    Metadrive,
 }
 
 /// What a scene does when it reaches `scenario.horizon` steps.
@@ -328,11 +341,13 @@ impl DqnConfig {
     /// What is wrong with the section, one line per problem.
     fn problems(&self) -> Vec<String> {
         let mut problems = Vec::new();
-        if crate::q_policy::ActionGrid::new(self.steering.clone(), self.throttle.clone()).is_err() {
+        if crate::action_grid::ActionGrid::new(self.steering.clone(), self.throttle.clone())
+            .is_err()
+        {
             problems.push(format!(
                 "dqn.steering and dqn.throttle must each list values in [-1, 1], strictly \
                  increasing, at most {} grid points in all",
-                crate::q_policy::MAX_GRID_ACTIONS
+                crate::action_grid::MAX_GRID_ACTIONS
             ));
         }
         if !(self.learning_rate > 0.0 && self.learning_rate.is_finite()) {
@@ -483,7 +498,7 @@ impl AlgoKind {
     /// LCF angle).
     pub fn extra_obs_columns(self) -> usize {
         match self {
-            AlgoKind::Copo => crate::lcf::LcfDistribution::OBS_COLUMNS,
+            AlgoKind::Copo => crate::spec::LCF_OBS_COLUMNS,
             _ => 0,
         }
     }
@@ -731,7 +746,7 @@ impl RunConfig {
     /// Sizes beyond reason, and fragments too big for the message limit (actors could never
     /// deliver them).
     fn size_problems(&self) -> Vec<String> {
-        use crate::fragment::{MAX_AGENTS, MAX_STEPS};
+        use crate::spec::{MAX_AGENTS, MAX_STEPS};
         let mut problems = Vec::new();
         let p = &self.ppo;
         if p.hidden.len() > MAX_HIDDEN_LAYERS || p.hidden.iter().any(|&h| h > MAX_HIDDEN_WIDTH) {
@@ -767,7 +782,7 @@ impl RunConfig {
     pub fn fragment_bytes_estimate(&self) -> usize {
         let cells = self.rollout.fragment_length * self.scenario.agent_count();
         let obs_dim = self.scenario.obs_dim();
-        let floats_per_cell = obs_dim + crate::spec::ACTION_DIM + 3 + crate::lcf::FEATURES;
+        let floats_per_cell = obs_dim + crate::spec::ACTION_DIM + 3 + crate::lcf_inputs::FEATURES;
         // f32 values, two flag bytes and one neighbour offset per cell, the bootstrap rows.
         cells * (floats_per_cell * 4 + 2 + 4) + self.scenario.agent_count() * obs_dim * 4
     }
@@ -802,7 +817,7 @@ impl ServerSection {
                     .to_string(),
             );
         }
-        if !self.shm_name.is_empty() && !crate::shm::is_valid_name(&self.shm_name) {
+        if !self.shm_name.is_empty() && !is_valid_shm_name(&self.shm_name) {
             problems.push(format!(
                 "server.shm_name {:?} may only hold letters, digits, '-', '_' and '.' (at most 200), or be \"\" for no shared memory",
                 self.shm_name
@@ -908,10 +923,10 @@ impl ScenarioConfig {
 
     pub fn validate(&self) -> Result<(), ConfigError> {
         let mut problems = Vec::new();
-        if self.agents == 0 || self.agents > crate::fragment::MAX_AGENTS {
+        if self.agents == 0 || self.agents > crate::spec::MAX_AGENTS {
             problems.push(format!(
                 "scenario.agents must be in 1..={}",
-                crate::fragment::MAX_AGENTS
+                crate::spec::MAX_AGENTS
             ));
         }
         if self.horizon == 0 || self.agent_horizon == 0 {
@@ -1041,6 +1056,15 @@ impl ScenarioConfig {
         }
         join_problems(problems)
     }
+}
+
+/// A base name for the shared-memory services (`server.shm_name`): 1 to 200 letters,
+/// digits, '-', '_' or '.'.
+pub fn is_valid_shm_name(base: &str) -> bool {
+    (1..=200).contains(&base.len())
+        && base
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
 }
 
 fn join_problems(problems: Vec<String>) -> Result<(), ConfigError> {

@@ -10,7 +10,7 @@
 
 use parry2d::math::Vec2;
 
-use junction_common::config::HumanConfig;
+use junction_core::config::HumanConfig;
 
 use super::autopilot::{bend_speed, route_point};
 use super::network::RoadNetwork;

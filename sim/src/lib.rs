@@ -1,7 +1,9 @@
 //! The traffic simulator: pure and deterministic (no I/O, no clock, no global state; seeded
-//! RNG). `Scene::new(config, seed)` builds a scene; `scene.step(&actions)` advances it one
+//! RNG) and free of libtorch, tokio and tonic, so the actor, its tools and the Python binding
+//! share it. `Scene::new(config, seed)` builds a scene; `scene.step(&actions)` advances it one
 //! decision step and returns rewards, costs, dones and finished episodes; observations, the
-//! alive mask and neighbourhoods describe the state the next actions respond to.
+//! alive mask and neighbourhoods describe the state the next actions respond to. `render`
+//! draws a scene from above into an RGBA frame.
 //!
 //! See `docs/SIMULATOR.md` for the model and `docs/OBSERVATION.md` for the observation layout.
 
@@ -14,6 +16,7 @@ pub mod lane;
 mod lidar;
 pub mod network;
 pub mod observation;
+pub mod render;
 pub mod reward;
 pub mod roundabout;
 mod scene;

@@ -9,10 +9,10 @@ use rand::seq::index::sample;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::{AfterHorizon, ScenarioConfig, SceneKind};
-use junction_common::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
-use junction_common::lcf;
-use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
+use junction_core::config::{AfterHorizon, ScenarioConfig, SceneKind, Simulator};
+use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::lcf_inputs;
+use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
 use super::SimError;
 use super::angle;
@@ -68,6 +68,10 @@ pub struct FinishedEpisode {
     /// The car's body when the episode ended: the car itself is gone by then (a renderer
     /// marks where it arrived, crashed or left the road).
     pub vehicle: VehicleView,
+    /// What the car observed where it ended (`obs_dim` values): the slot's row of
+    /// [`Scene::observations`] already belongs to its successor or is empty, and a learner that
+    /// bootstraps a cut-off episode (or a Gym environment's final observation) needs this one.
+    pub observation: Vec<f32>,
 }
 
 /// What one `step` produced, per slot (0 / false for slots that did not act).
@@ -150,6 +154,13 @@ impl Scene {
         config
             .validate()
             .map_err(|e| SimError::Config(e.to_string()))?;
+        if config.simulator != Simulator::Junction {
+            return Err(SimError::Config(format!(
+                "scenario {:?} runs on MetaDrive (scenario.simulator = \"metadrive\"): its \
+                 actor is `python -m junction.metadrive_actor` (docs/PYTHON.md)",
+                config.name
+            )));
+        }
         let network: Box<dyn RoadNetwork> = match config.kind {
             SceneKind::Intersection => Box::new(Intersection::new(&config.intersection)?),
             SceneKind::Roundabout => Box::new(Roundabout::new(&config.roundabout)?),
@@ -192,7 +203,7 @@ impl Scene {
             alive: vec![false; slots],
             neighbour_offsets: vec![0; slots + 1],
             neighbour_ids: Vec::new(),
-            lcf_features: vec![0.0; slots * lcf::FEATURES],
+            lcf_features: vec![0.0; slots * lcf_inputs::FEATURES],
             result: StepResult {
                 rewards: vec![0.0; slots],
                 costs: vec![0.0; slots],
@@ -240,7 +251,7 @@ impl Scene {
         (&self.neighbour_offsets, &self.neighbour_ids)
     }
 
-    /// S_N of every slot (`lcf::FEATURES` each, zeros for empty slots), for the LCF methods.
+    /// S_N of every slot (`lcf_inputs::FEATURES` each, zeros for empty slots), for the LCF methods.
     pub fn lcf_features(&self) -> &[f32] {
         &self.lcf_features
     }
@@ -315,8 +326,8 @@ impl Scene {
         self.detect_collisions();
 
         // Outcomes, rewards, costs.
-        let horizon_cuts =
-            self.config.after_horizon == AfterHorizon::Reset && self.steps + 1 >= self.config.horizon;
+        let horizon_cuts = self.config.after_horizon == AfterHorizon::Reset
+            && self.steps + 1 >= self.config.horizon;
         for slot in 0..self.cars.len() {
             let Some(car) = self.cars[slot].as_mut() else {
                 continue;
@@ -385,10 +396,19 @@ impl Scene {
                 } else {
                     self.episode.record(outcome);
                     self.result.dones[slot] = true;
+                    let mut observation = vec![0.0; self.config.obs_dim()];
+                    let view = Surroundings {
+                        network: self.network.as_ref(),
+                        bodies: &self.bodies,
+                        grid: &self.grid,
+                        lidar_range: self.config.sensors.lidar_range,
+                    };
+                    view.observe(slot, car, &mut observation, &mut self.near, &mut self.lidar);
                     self.result.finished.push(FinishedEpisode {
                         slot,
                         stats,
                         vehicle: VehicleView::of(&car.kin, Some(slot), false),
+                        observation,
                     });
                 }
                 if outcome == Outcome::Crash && self.config.crash_obstacle_steps > 0 {
@@ -594,7 +614,8 @@ impl Scene {
         self.neighbour_offsets[0] = 0;
         for slot in 0..self.slots() {
             let row = &mut self.observations[slot * obs_dim..(slot + 1) * obs_dim];
-            let features = &mut self.lcf_features[slot * lcf::FEATURES..(slot + 1) * lcf::FEATURES];
+            let features = &mut self.lcf_features
+                [slot * lcf_inputs::FEATURES..(slot + 1) * lcf_inputs::FEATURES];
             let Some(car) = self.cars[slot].as_ref() else {
                 row.fill(0.0);
                 features.fill(0.0);
@@ -603,30 +624,15 @@ impl Scene {
                 continue;
             };
             self.alive[slot] = true;
-            let at = RoutePosition {
-                route: &self.network.routes()[car.route],
-                lane_index: car.lane_index,
-                s: car.s,
-                lateral: car.lateral,
+            let view = Surroundings {
+                network: self.network.as_ref(),
+                bodies: &self.bodies,
+                grid: &self.grid,
+                lidar_range: range,
             };
-            observation::write_state(row, &car.kin, &at, self.network.lanes());
+            view.observe(slot, car, row, &mut self.near, &mut self.lidar);
             let (p, bodies, grid) = (car.kin.position, &self.bodies, &self.grid);
-            let (near, neighbours) = (&mut self.near, &mut self.nearby_agents);
-            near.clear();
-            grid.for_each_near(p, range + BOUNDING_RADIUS, |j| {
-                if bodies[j].2 != Some(slot) {
-                    near.push(j);
-                }
-            });
-            lidar::scan(
-                p,
-                car.kin.heading,
-                range,
-                near.iter().map(|&j| (bodies[j].0, bodies[j].1)),
-                &mut self.lidar,
-            );
-            debug_assert_eq!(row.len() - LIDAR_OFFSET, self.lidar.len());
-            observation::write_lidar(row, &self.lidar, range);
+            let neighbours = &mut self.nearby_agents;
             neighbours.clear();
             grid.for_each_near(p, radius, |j| {
                 if let Some(other) = bodies[j].2.filter(|&o| o < agents)
@@ -644,11 +650,11 @@ impl Scene {
                     .map_or(f32::INFINITY, |c| (c.kin.position - p).length())
             };
             neighbours.sort_unstable_by(|a, b| distance(a).total_cmp(&distance(b)).then(a.cmp(b)));
-            let motion = |kin: &Kinematics| lcf::Motion {
+            let motion = |kin: &Kinematics| lcf_inputs::Motion {
                 position: kin.position.into(),
                 velocity: (Vec2::from_angle(kin.heading) * kin.speed).into(),
             };
-            features.copy_from_slice(&lcf::neighbourhood_features(
+            features.copy_from_slice(&lcf_inputs::neighbourhood_features(
                 motion(&car.kin),
                 neighbours
                     .iter()
@@ -697,6 +703,51 @@ impl Scene {
         car.progress = progress;
         self.cars[slot] = Some(car);
         self.refresh();
+    }
+}
+
+/// What a car's observation is made of besides the car: the road and every body on it.
+struct Surroundings<'a> {
+    network: &'a dyn RoadNetwork,
+    /// (position, heading, slot) of every body, indexed by `grid`.
+    bodies: &'a [(Vec2, f32, Option<usize>)],
+    grid: &'a Grid,
+    lidar_range: f32,
+}
+
+impl Surroundings<'_> {
+    /// Writes the observation of `car` (in `slot`) into `row`; `near` and `lidar` are scratch.
+    fn observe(
+        &self,
+        slot: usize,
+        car: &Car,
+        row: &mut [f32],
+        near: &mut Vec<usize>,
+        lidar: &mut [f32],
+    ) {
+        let at = RoutePosition {
+            route: &self.network.routes()[car.route],
+            lane_index: car.lane_index,
+            s: car.s,
+            lateral: car.lateral,
+        };
+        observation::write_state(row, &car.kin, &at, self.network.lanes());
+        let (p, range, bodies) = (car.kin.position, self.lidar_range, self.bodies);
+        near.clear();
+        self.grid.for_each_near(p, range + BOUNDING_RADIUS, |j| {
+            if bodies[j].2 != Some(slot) {
+                near.push(j);
+            }
+        });
+        lidar::scan(
+            p,
+            car.kin.heading,
+            range,
+            near.iter().map(|&j| (bodies[j].0, bodies[j].1)),
+            lidar,
+        );
+        debug_assert_eq!(row.len() - LIDAR_OFFSET, lidar.len());
+        observation::write_lidar(row, lidar, range);
     }
 }
 

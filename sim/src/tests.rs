@@ -8,10 +8,10 @@ use rand_chacha::ChaCha8Rng;
 
 use std::f32::consts::PI;
 
-use junction_common::config::{AfterHorizon, Manoeuvre, ScenarioConfig, Traffic};
-use junction_common::fragment::Outcome;
-use junction_common::lcf;
-use junction_common::spec::ACTION_DIM;
+use junction_core::config::{AfterHorizon, Manoeuvre, ScenarioConfig, Traffic};
+use junction_core::episode::Outcome;
+use junction_core::lcf_inputs;
+use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
 use super::autopilot::autopilot_actions;
 use super::network::RoadNetwork;
@@ -88,6 +88,16 @@ fn two_cars_on_crossing_paths_collide() {
                 assert_eq!(result.rewards[slot], scene.config().reward.crash);
                 assert_eq!(result.costs[slot], scene.config().cost.collision);
                 assert_eq!(e.stats.collisions, 1);
+                // Its final observation is where it crashed: the car it hit fills a lidar
+                // beam at less than a car length, whatever its slot's row now holds.
+                assert_eq!(e.observation.len(), scene.obs_dim());
+                let nearest = e.observation[LIDAR_OFFSET..]
+                    .iter()
+                    .fold(1.0f32, |m, &v| m.min(v));
+                assert!(
+                    nearest * scene.config().sensors.lidar_range < 4.0,
+                    "{nearest}"
+                );
                 *slot_crashed = true;
             }
         }
@@ -462,7 +472,10 @@ fn a_reset_scene_reports_its_scene_episode_by_outcome() {
     for _ in 0..19 {
         assert_eq!(scene.step(&stopped).scene_episode, None);
     }
-    let ended = scene.step(&stopped).scene_episode.expect("the horizon ends it");
+    let ended = scene
+        .step(&stopped)
+        .scene_episode
+        .expect("the horizon ends it");
     assert_eq!((ended.steps, ended.timeouts, ended.agents()), (20, 10, 10));
 }
 
@@ -501,8 +514,14 @@ fn after_the_horizon_a_finishing_scene_stops_respawning_and_lets_agents_drive_on
     assert!(steps > cfg.horizon, "it ran past the horizon: {steps}");
     assert_eq!(ended.steps, steps);
     // Every agent episode of the scene episode is in its tally, and it ended when the last did.
-    assert_eq!(ended.agents(), outcomes.values().map(|&c| u64::from(c)).sum::<u64>());
-    assert_eq!(ended.successes, outcomes.get(&Outcome::Success).copied().unwrap_or(0));
+    assert_eq!(
+        ended.agents(),
+        outcomes.values().map(|&c| u64::from(c)).sum::<u64>()
+    );
+    assert_eq!(
+        ended.successes,
+        outcomes.get(&Outcome::Success).copied().unwrap_or(0)
+    );
     assert_eq!(scene.steps_since_reset(), 0, "then the scene starts afresh");
     assert_eq!(scene.alive().iter().filter(|a| **a).count(), 10);
 }
@@ -529,7 +548,10 @@ fn a_wreck_can_hold_its_slot_until_it_is_removed() {
             let Some(at) = crashed_at else { continue };
             let refilled = scene.alive()[0];
             if step - at < 24 {
-                assert_eq!(refilled, !holds, "step {step}, wreck holds its slot: {holds}");
+                assert_eq!(
+                    refilled, !holds,
+                    "step {step}, wreck holds its slot: {holds}"
+                );
             } else if step - at > 25 {
                 assert!(refilled, "the wreck is gone, the slot refills");
                 break;
@@ -616,7 +638,8 @@ fn neighbourhoods_are_symmetric_and_within_the_radius() {
             "nearest first: {distances:?}"
         );
         total += mine.len();
-        let features = &scene.lcf_features()[slot * lcf::FEATURES..(slot + 1) * lcf::FEATURES];
+        let features =
+            &scene.lcf_features()[slot * lcf_inputs::FEATURES..(slot + 1) * lcf_inputs::FEATURES];
         assert_eq!(
             features[0],
             (mine.len() as f32 / 20.0).min(1.0),
@@ -649,7 +672,7 @@ const LAYOUTS: [&str; 7] = [
 ];
 
 fn shipped(name: &str) -> ScenarioConfig {
-    junction_common::scenarios::load(name).unwrap()
+    junction_core::scenarios::load(name).unwrap()
 }
 
 fn with_agents(name: &str, agents: usize) -> ScenarioConfig {

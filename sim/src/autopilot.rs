@@ -4,7 +4,7 @@
 
 use parry2d::math::Vec2;
 
-use junction_common::spec::{ACTION_DIM, LIDAR_OFFSET};
+use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
 use super::Scene;
 use super::network::{RoadNetwork, Route};

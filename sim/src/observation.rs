@@ -20,7 +20,7 @@ use std::f32::consts::PI;
 
 use parry2d::math::Vec2;
 
-use junction_common::spec::{EGO_DIM, LIDAR_OFFSET, NAV_PER_CHECKPOINT};
+use junction_core::spec::{EGO_DIM, LIDAR_OFFSET, NAV_PER_CHECKPOINT};
 
 use super::lane::Lane;
 use super::network::Route;
@@ -91,7 +91,7 @@ pub fn write_lidar(out: &mut [f32], distances: &[f32], range: f32) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::spec::obs_dim;
+    use junction_core::spec::obs_dim;
 
     #[test]
     fn layout_is_pinned() {

@@ -32,6 +32,14 @@ pub const SHIPPED: &[(&str, &str)] = &[
         include_str!("../../scenarios/roundabout-large-5arm.toml"),
     ),
     (
+        "intersection-on-metadrive",
+        include_str!("../../scenarios/intersection-on-metadrive.toml"),
+    ),
+    (
+        "roundabout-on-metadrive",
+        include_str!("../../scenarios/roundabout-on-metadrive.toml"),
+    ),
+    (
         "t-junction",
         include_str!("../../scenarios/t-junction.toml"),
     ),

@@ -1,4 +1,5 @@
-//! Observation and action layout shared by the simulator, the policy and the wire.
+//! Observation and action layout shared by the simulator, the policy and the wire, and the
+//! size limits every decoder of a peer's data enforces.
 //!
 //! The observation follows MetaDrive's multi-agent layout (see `docs/OBSERVATION.md`): ego
 //! state, navigation towards the next two checkpoints, then the lidar. Every value is in [0, 1].
@@ -28,6 +29,20 @@ pub const ACTION_DIM: usize = 2;
 pub const fn obs_dim(lidar_beams: usize) -> usize {
     LIDAR_OFFSET + lidar_beams
 }
+
+/// Wire protocol version; every message carries it and peers refuse others.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Upper bounds that keep a hostile header from asking for absurd allocations.
+pub const MAX_STEPS: usize = 100_000;
+pub const MAX_AGENTS: usize = 10_000;
+pub const MAX_OBS_DIM: usize = 65_536;
+pub const MAX_ACTION_DIM: usize = 64;
+/// Longest actor id, actor name or scenario name accepted from a peer, in bytes.
+pub const MAX_NAME_BYTES: usize = 256;
+
+/// Observation values CoPO's LCF angle adds after the scenario's (one: φ encoded in [0, 1]).
+pub const LCF_OBS_COLUMNS: usize = 1;
 
 #[cfg(test)]
 mod tests {

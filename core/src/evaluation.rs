@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use crate::confidence::{self, Estimate};
-use crate::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
+use crate::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
 
 /// `format` of an eval result file; bumped when a field changes meaning.
 pub const EVAL_FORMAT: &str = "junction-eval/1";
@@ -43,7 +43,12 @@ pub const METRICS: [MetricDef; 16] = [
     metric("collision_rate", "Collision rate", "1/s", false),
     metric("scene_success_rate", "Success rate (MetaDrive)", "", true),
     metric("scene_crash_rate", "Crash rate (MetaDrive)", "", false),
-    metric("scene_out_of_road_rate", "Out-of-road rate (MetaDrive)", "", false),
+    metric(
+        "scene_out_of_road_rate",
+        "Out-of-road rate (MetaDrive)",
+        "",
+        false,
+    ),
     metric("success_rate", "Success rate", "", true),
     metric("crash_rate", "Crash rate", "", false),
     metric("out_of_road_rate", "Out-of-road rate", "", false),
@@ -507,11 +512,18 @@ mod tests {
         for key in ["scene_episodes", "after_horizon"] {
             old.as_object_mut().unwrap().remove(key);
         }
-        for key in ["scene_success_rate", "scene_crash_rate", "scene_out_of_road_rate"] {
+        for key in [
+            "scene_success_rate",
+            "scene_crash_rate",
+            "scene_out_of_road_rate",
+        ] {
             old["metrics"].as_object_mut().unwrap().remove(key);
         }
         let old: EvalReport = serde_json::from_value(old).unwrap();
-        assert_eq!((old.scene_episodes, old.metrics.scene_success_rate), (0, None));
+        assert_eq!(
+            (old.scene_episodes, old.metrics.scene_success_rate),
+            (0, None)
+        );
         assert_eq!(old.metrics.rows().len(), METRICS.len() - 3);
     }
 }

@@ -1,7 +1,7 @@
 //! Per-step reward and cost of one agent (paper §3.4 and §3.5); formulas in docs/SIMULATOR.md.
 
-use junction_common::config::{CostConfig, RewardConfig, RewardKind};
-use junction_common::fragment::Outcome;
+use junction_core::config::{CostConfig, RewardConfig, RewardKind};
+use junction_core::episode::Outcome;
 
 use super::vehicle::MAX_SPEED;
 
@@ -70,7 +70,7 @@ pub fn cost(config: &CostConfig, f: &StepFacts) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::config::RunConfig;
+    use junction_core::config::RunConfig;
 
     fn facts() -> StepFacts {
         StepFacts {

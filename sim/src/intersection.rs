@@ -18,7 +18,7 @@ use std::f32::consts::{FRAC_PI_2, PI};
 
 use parry2d::math::Vec2;
 
-use junction_common::config::{IntersectionConfig, Manoeuvre};
+use junction_core::config::{IntersectionConfig, Manoeuvre};
 
 use super::SimError;
 use super::lane::Lane;
@@ -215,7 +215,7 @@ impl RoadNetwork for Intersection {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::config::ScenarioConfig;
+    use junction_core::config::ScenarioConfig;
 
     fn default_intersection() -> Intersection {
         Intersection::new(&ScenarioConfig::default().intersection).unwrap()

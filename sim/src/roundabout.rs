@@ -23,7 +23,7 @@ use std::f32::consts::{FRAC_PI_2, PI, TAU};
 
 use parry2d::math::Vec2;
 
-use junction_common::config::RoundaboutConfig;
+use junction_core::config::RoundaboutConfig;
 
 use super::SimError;
 use super::angle::wrap;

@@ -5,12 +5,12 @@
 
 use parry2d::math::Vec2;
 
-use junction_common::fragment::Outcome;
-use junction_common::spec::LIDAR_OFFSET;
+use junction_core::episode::Outcome;
+use junction_core::spec::LIDAR_OFFSET;
 
-use crate::sim::lane::{Lane, LaneShape};
-use crate::sim::network::RoadNetwork;
-use crate::sim::{Scene, StepResult, VehicleView};
+use crate::lane::{Lane, LaneShape};
+use crate::network::RoadNetwork;
+use crate::{Scene, StepResult, VehicleView};
 
 pub type Rgba = [u8; 4];
 
@@ -556,11 +556,11 @@ fn paint_legend(frame: &mut Frame) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::fragment::EpisodeStats;
-    use junction_common::scenarios;
+    use junction_core::episode::EpisodeStats;
+    use junction_core::scenarios;
 
-    use crate::sim::FinishedEpisode;
-    use crate::sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
+    use crate::FinishedEpisode;
+    use crate::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
 
     fn intersection(seed: u64) -> Scene {
         Scene::new(&scenarios::load("intersection").unwrap(), seed).unwrap()
@@ -693,6 +693,7 @@ mod tests {
                 total_cost: 0.0,
             },
             vehicle,
+            observation: Vec::new(),
         };
         let step = StepResult {
             finished: vec![finished(Outcome::Success), finished(Outcome::Timeout)],

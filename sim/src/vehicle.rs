@@ -60,8 +60,8 @@ impl Default for Dynamics {
     }
 }
 
-impl From<&junction_common::config::VehicleConfig> for Dynamics {
-    fn from(c: &junction_common::config::VehicleConfig) -> Self {
+impl From<&junction_core::config::VehicleConfig> for Dynamics {
+    fn from(c: &junction_core::config::VehicleConfig) -> Self {
         Dynamics {
             max_lateral_accel: c.max_lateral_accel,
             max_brake_decel: c.max_brake_decel,
