@@ -69,8 +69,7 @@ pub fn run(
             let result = scene.step(actions);
             current.scene_steps += 1;
             for finished in &result.finished {
-                current.episodes.push(finished.stats);
-                current.collisions += u64::from(finished.stats.collisions);
+                current.record(finished.stats, finished.ending);
             }
             current.collisions += result
                 .human_finished
@@ -82,6 +81,9 @@ pub fn run(
                 tally.episodes.extend(done.episodes);
                 tally.collisions += done.collisions;
                 tally.scene_steps += done.scene_steps;
+                for (ending, count) in done.endings {
+                    *tally.endings.entry(ending).or_default() += count;
+                }
                 tally.scene_episodes.push(ended);
             }
         }

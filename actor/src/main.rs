@@ -377,6 +377,7 @@ fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
         episodes_requested: args.episodes,
         episodes: tally.episodes.len() as u64,
         outcomes: tally.outcomes(),
+        endings: tally.endings.clone(),
         scene_steps: tally.scene_steps,
         sim_seconds: tally.sim_seconds,
         collisions: tally.collisions,

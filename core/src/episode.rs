@@ -32,6 +32,79 @@ impl Outcome {
     }
 }
 
+/// Where on its route an agent's episode ended: what `actor eval` counts to say where agents
+/// fail, beside how.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum RouteStage {
+    /// On the lane it entered on: the approach.
+    Entry,
+    /// On a lane inside the junction or on the ring.
+    Junction,
+    /// On its exit lane.
+    Exit,
+}
+
+impl RouteStage {
+    pub fn label(self) -> &'static str {
+        match self {
+            RouteStage::Entry => "entry",
+            RouteStage::Junction => "junction",
+            RouteStage::Exit => "exit",
+        }
+    }
+}
+
+/// What a crashed car ran into, judged from the two bodies at the contact. Rear-end and
+/// sideswipe contacts are the car-following and lane-keeping failures; crossing and head-on
+/// ones the failures to give way.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum CrashKind {
+    /// A car going the same way (headings within 30°) whose centre lies within a car width of
+    /// the line through this one: ahead of it or behind it in the lane.
+    RearEnd,
+    /// A car going the same way beside it.
+    Sideswipe,
+    /// A car crossing its path (headings 30° to 150° apart).
+    Crossing,
+    /// A car coming the other way (headings more than 150° apart).
+    HeadOn,
+    /// A wreck left on the road.
+    Wreck,
+}
+
+impl CrashKind {
+    pub fn label(self) -> &'static str {
+        match self {
+            CrashKind::RearEnd => "rear_end",
+            CrashKind::Sideswipe => "sideswipe",
+            CrashKind::Crossing => "crossing",
+            CrashKind::HeadOn => "head_on",
+            CrashKind::Wreck => "wreck",
+        }
+    }
+}
+
+/// How and where one agent episode ended, as `actor eval` counts it:
+/// `outcome/stage`, and for crashes `crash/stage/kind`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Ending {
+    pub outcome: Outcome,
+    pub stage: RouteStage,
+    /// What the car hit, for a crash.
+    pub crash: Option<CrashKind>,
+}
+
+impl Ending {
+    pub fn key(&self) -> String {
+        let mut key = format!("{}/{}", self.outcome.label(), self.stage.label());
+        if let Some(kind) = self.crash {
+            key.push('/');
+            key.push_str(kind.label());
+        }
+        key
+    }
+}
+
 /// Statistics of one finished agent episode.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EpisodeStats {

@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use crate::confidence::{self, Estimate};
-use crate::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use crate::episode::{Ending, EpisodeStats, Outcome, SceneEpisodeStats};
 
 /// `format` of an eval result file; bumped when a field changes meaning.
 pub const EVAL_FORMAT: &str = "junction-eval/1";
@@ -153,9 +153,19 @@ pub struct EvalTally {
     pub sim_seconds: f64,
     /// The scene episodes the agent episodes came from.
     pub scene_episodes: Vec<SceneEpisodeStats>,
+    /// Agent episodes by [`Ending::key`] (where and how they ended), when the simulator says
+    /// (empty for MetaDrive's).
+    pub endings: BTreeMap<String, u64>,
 }
 
 impl EvalTally {
+    /// Counts one finished agent episode.
+    pub fn record(&mut self, stats: EpisodeStats, ending: Ending) {
+        self.episodes.push(stats);
+        self.collisions += u64::from(stats.collisions);
+        *self.endings.entry(ending.key()).or_default() += 1;
+    }
+
     pub fn outcomes(&self) -> BTreeMap<String, u64> {
         Outcome::ALL
             .iter()
@@ -236,6 +246,10 @@ pub struct EvalReport {
     #[serde(default)]
     pub after_horizon: Option<crate::config::AfterHorizon>,
     pub metrics: EvalMetrics,
+    /// Agent episodes by where and how they ended (`outcome/stage`, crashes
+    /// `crash/stage/kind`: docs/EVALUATION.md); absent where the simulator does not say.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub endings: BTreeMap<String, u64>,
     /// Wall-clock seconds the evaluation took (the only field that varies between reruns).
     pub wall_s: f64,
 }
@@ -325,6 +339,18 @@ impl EvalReport {
                 e.ci.label()
             ));
         }
+        if !self.endings.is_empty() {
+            out.push_str("\nhow agent episodes ended (outcome/route stage[/what a crashed car hit])\n");
+            let mut endings: Vec<(&String, &u64)> = self.endings.iter().collect();
+            endings.sort_by(|a, b| b.1.cmp(a.1).then(a.0.cmp(b.0)));
+            for (ending, count) in endings {
+                let share = *count as f64 / self.episodes.max(1) as f64;
+                out.push_str(&format!(
+                    "{ending:<40} {count:>11}  {:.1} %\n",
+                    100.0 * share
+                ));
+            }
+        }
         out
     }
 }
@@ -393,6 +419,7 @@ mod tests {
                     timeouts: 2,
                 },
             ],
+            endings: BTreeMap::new(),
         }
     }
 
@@ -479,6 +506,12 @@ mod tests {
             episodes_requested: 5,
             episodes: 5,
             outcomes: tally().outcomes(),
+            endings: BTreeMap::from([
+                ("success/exit".to_string(), 2),
+                ("crash/entry/rear_end".to_string(), 1),
+                ("out_of_road/junction".to_string(), 1),
+                ("timeout/junction".to_string(), 1),
+            ]),
             scene_steps: 600,
             sim_seconds: 60.0,
             collisions: 2,
@@ -503,13 +536,18 @@ mod tests {
         assert!(lines[5].ends_with(",wilson,5"), "{}", lines[5]);
         let table = report.to_table();
         assert!(table.contains("Success rate"), "{table}");
-        assert_eq!(table.lines().count(), 4 + METRICS.len(), "{table}");
+        // The metrics, then a blank line, a heading and the endings, most frequent first.
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(lines.len(), 4 + METRICS.len() + 2 + 4, "{table}");
+        assert!(lines[4 + METRICS.len() + 2].starts_with("success/exit"), "{table}");
+        assert!(lines[4 + METRICS.len() + 2].ends_with("40.0 %"), "{table}");
+        assert!(lines[4 + METRICS.len() + 3].starts_with("crash/entry/rear_end"), "{table}");
         let json = serde_json::to_string(&report).unwrap();
         let back: EvalReport = serde_json::from_str(&json).unwrap();
         assert_eq!(back, report);
         // An evaluation from before scene episodes were counted still reads, without them.
         let mut old: serde_json::Value = serde_json::from_str(&json).unwrap();
-        for key in ["scene_episodes", "after_horizon"] {
+        for key in ["scene_episodes", "after_horizon", "endings"] {
             old.as_object_mut().unwrap().remove(key);
         }
         for key in [
@@ -524,6 +562,7 @@ mod tests {
             (old.scene_episodes, old.metrics.scene_success_rate),
             (0, None)
         );
+        assert!(old.endings.is_empty());
         assert_eq!(old.metrics.rows().len(), METRICS.len() - 3);
     }
 }

@@ -583,6 +583,7 @@ fn eval_report(
         scene_steps,
         sim_seconds,
         scene_episodes: scenes,
+        endings: Default::default(),
     };
     let meta: serde_json::Value =
         serde_json::from_str(meta).map_err(|e| bad(&format!("meta is not JSON: {e}")))?;
@@ -613,6 +614,7 @@ fn eval_report(
         episodes_requested: number("episodes_requested")?,
         episodes: tally.episodes.len() as u64,
         outcomes: tally.outcomes(),
+        endings: tally.endings.clone(),
         scene_steps: tally.scene_steps,
         sim_seconds: tally.sim_seconds,
         collisions: tally.collisions,

@@ -556,7 +556,7 @@ fn paint_legend(frame: &mut Frame) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_core::episode::EpisodeStats;
+    use junction_core::episode::{Ending, EpisodeStats, RouteStage};
     use junction_core::scenarios;
 
     use crate::FinishedEpisode;
@@ -691,6 +691,11 @@ mod tests {
                 collisions: 0,
                 energy_kj: 0.0,
                 total_cost: 0.0,
+            },
+            ending: Ending {
+                outcome,
+                stage: RouteStage::Exit,
+                crash: None,
             },
             vehicle,
             observation: Vec::new(),

@@ -10,7 +10,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use junction_core::config::{AfterHorizon, ScenarioConfig, SceneKind, Simulator};
-use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::episode::{CrashKind, Ending, EpisodeStats, Outcome, RouteStage, SceneEpisodeStats};
 use junction_core::lcf_inputs;
 use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
@@ -68,6 +68,8 @@ pub struct FinishedEpisode {
     /// The car's body when the episode ended: the car itself is gone by then (a renderer
     /// marks where it arrived, crashed or left the road).
     pub vehicle: VehicleView,
+    /// Where on its route it ended and, for a crash, what it hit.
+    pub ending: Ending,
     /// What the car observed where it ended (`obs_dim` values): the slot's row of
     /// [`Scene::observations`] already belongs to its successor or is empty, and a learner that
     /// bootstraps a cut-off episode (or a Gym environment's final observation) needs this one.
@@ -87,6 +89,36 @@ pub struct StepResult {
     pub human_finished: Vec<EpisodeStats>,
     /// The scene episode that ended with this step (the scene has started afresh), if one did.
     pub scene_episode: Option<SceneEpisodeStats>,
+}
+
+/// What a vehicle touched first in a step: another vehicle (its pose) or a wreck.
+#[derive(Debug, Clone, Copy)]
+enum Contact {
+    Vehicle { position: Vec2, heading: f32 },
+    Wreck,
+}
+
+impl Contact {
+    /// The kind of crash this contact is for a car in `kin`.
+    fn kind(self, kin: &Kinematics) -> CrashKind {
+        let Contact::Vehicle { position, heading } = self else {
+            return CrashKind::Wreck;
+        };
+        let apart = angle::wrap(heading - kin.heading).abs().to_degrees();
+        if apart > 150.0 {
+            CrashKind::HeadOn
+        } else if apart > 30.0 {
+            CrashKind::Crossing
+        } else if Vec2::from_angle(kin.heading)
+            .perp_dot(position - kin.position)
+            .abs()
+            < WIDTH
+        {
+            CrashKind::RearEnd
+        } else {
+            CrashKind::Sideswipe
+        }
+    }
 }
 
 /// A body, for rendering and tests.
@@ -138,7 +170,8 @@ pub struct Scene {
     // Scratch space reused every step.
     grid: Grid,
     bodies: Vec<(Vec2, f32, Option<usize>)>,
-    crashed: Vec<bool>,
+    /// Each vehicle's first contact this step (`Some` exactly where it crashed).
+    contacts: Vec<Option<Contact>>,
     lidar: Vec<f32>,
     progress_gain: Vec<f32>,
     accel: Vec<f32>,
@@ -212,7 +245,7 @@ impl Scene {
             },
             grid: Grid::new(extent + GRID_CELL, GRID_CELL),
             bodies: Vec::new(),
-            crashed: vec![false; vehicles],
+            contacts: vec![None; vehicles],
             lidar: vec![0.0; config.sensors.lidar_beams],
             progress_gain: vec![0.0; vehicles],
             accel: vec![0.0; vehicles],
@@ -335,7 +368,7 @@ impl Scene {
             let route = &self.network.routes()[car.route];
             let on_final_lane = car.lane_index + 1 == route.lanes.len();
             let lane = &self.network.lanes()[route.lanes[car.lane_index]];
-            let outcome = if self.crashed[slot] {
+            let outcome = if self.contacts[slot].is_some() {
                 Some(Outcome::Crash)
             } else if car
                 .kin
@@ -358,7 +391,7 @@ impl Scene {
                 lane_width: lane.width,
                 heading_error: angle::wrap(car.kin.heading - lane.heading(car.s)),
                 steer_change: self.steer_change[slot],
-                collided: self.crashed[slot],
+                collided: self.contacts[slot].is_some(),
                 energy_kj: self.energy_kj[slot],
                 outcome,
             };
@@ -371,7 +404,7 @@ impl Scene {
                 self.result.rewards[slot] = reward::reward(&self.config.reward, &facts);
                 self.result.rewards[slot]
             };
-            if self.crashed[slot] {
+            if self.contacts[slot].is_some() {
                 car.collisions += 1;
             }
             car.energy_kj += facts.energy_kj;
@@ -404,9 +437,21 @@ impl Scene {
                         lidar_range: self.config.sensors.lidar_range,
                     };
                     view.observe(slot, car, &mut observation, &mut self.near, &mut self.lidar);
+                    let stage = if car.lane_index == 0 {
+                        RouteStage::Entry
+                    } else if on_final_lane {
+                        RouteStage::Exit
+                    } else {
+                        RouteStage::Junction
+                    };
                     self.result.finished.push(FinishedEpisode {
                         slot,
                         stats,
+                        ending: Ending {
+                            outcome,
+                            stage,
+                            crash: self.contacts[slot].map(|c| c.kind(&car.kin)),
+                        },
                         vehicle: VehicleView::of(&car.kin, Some(slot), false),
                         observation,
                     });
@@ -568,12 +613,12 @@ impl Scene {
     }
 
     fn detect_collisions(&mut self) {
-        self.crashed.fill(false);
+        self.contacts.fill(None);
         self.rebuild_bodies();
         let shape = Cuboid::new(Vec2::new(LENGTH / 2.0, WIDTH / 2.0));
         let mut contacts = 0;
         let bodies = &self.bodies;
-        let crashed = &mut self.crashed;
+        let contacts_of = &mut self.contacts;
         for (i, &(p, h, slot)) in bodies.iter().enumerate() {
             if slot.is_none() {
                 continue; // obstacles do not move: their contacts are found from the agent's side
@@ -592,10 +637,19 @@ impl Scene {
                 if touching {
                     contacts += 1;
                     if let Some(s) = slot {
-                        crashed[s] = true;
+                        contacts_of[s].get_or_insert(match other {
+                            Some(_) => Contact::Vehicle {
+                                position: q,
+                                heading: g,
+                            },
+                            None => Contact::Wreck,
+                        });
                     }
                     if let Some(o) = other {
-                        crashed[o] = true;
+                        contacts_of[o].get_or_insert(Contact::Vehicle {
+                            position: p,
+                            heading: h,
+                        });
                     }
                 }
             });

@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use std::f32::consts::PI;
 
 use junction_core::config::{AfterHorizon, Manoeuvre, ScenarioConfig, Traffic};
-use junction_core::episode::Outcome;
+use junction_core::episode::{CrashKind, Ending, Outcome, RouteStage};
 use junction_core::lcf_inputs;
 use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
@@ -88,6 +88,13 @@ fn two_cars_on_crossing_paths_collide() {
                 assert_eq!(result.rewards[slot], scene.config().reward.crash);
                 assert_eq!(result.costs[slot], scene.config().cost.collision);
                 assert_eq!(e.stats.collisions, 1);
+                // They meet inside the junction box, each across the other's path.
+                let crossing = Ending {
+                    outcome: Outcome::Crash,
+                    stage: RouteStage::Junction,
+                    crash: Some(CrashKind::Crossing),
+                };
+                assert_eq!(e.ending, crossing, "slot {slot}");
                 // Its final observation is where it crashed: the car it hit fills a lidar
                 // beam at less than a car length, whatever its slot's row now holds.
                 assert_eq!(e.observation.len(), scene.obs_dim());
@@ -109,6 +116,55 @@ fn two_cars_on_crossing_paths_collide() {
         }
     }
     panic!("the cars never collided: {crashed:?}");
+}
+
+/// Steps `scene` with `actions` until some episode ends; returns how each ended, by slot.
+fn first_endings(scene: &mut Scene, actions: &[f32]) -> Vec<(usize, Ending)> {
+    for _ in 0..50 {
+        let result = scene.step(actions);
+        if !result.finished.is_empty() {
+            return result.finished.iter().map(|e| (e.slot, e.ending)).collect();
+        }
+    }
+    panic!("no episode ended within 50 steps");
+}
+
+#[test]
+fn a_crash_ending_says_what_the_car_hit_and_where() {
+    let mut wrecks_stay = config(3);
+    wrecks_stay.wreck_holds_slot = true;
+    let mut scene = Scene::new(&wrecks_stay, 1).unwrap();
+    let east = route_from(scene.network(), 0, 0.0);
+    let crash = |crash| Ending {
+        outcome: Outcome::Crash,
+        stage: RouteStage::Entry,
+        crash: Some(crash),
+    };
+    // On the approach, a car rolls at 8 m/s into the stopped car 8 m ahead of it.
+    scene.clear();
+    scene.place(0, east, 30.0, 0.0, 0.0, 0.0);
+    scene.place(1, east, 22.0, 0.0, 0.0, 8.0);
+    let endings = first_endings(&mut scene, &[0.0, -1.0, 0.0, 0.5, 0.0, -1.0]);
+    assert_eq!(
+        endings,
+        vec![(0, crash(CrashKind::RearEnd)), (1, crash(CrashKind::RearEnd))]
+    );
+    // The next car on that lane runs into their wrecks.
+    scene.place(2, east, 10.0, 0.0, 0.0, 8.0);
+    let endings = first_endings(&mut scene, &[0.0, 0.0, 0.0, 0.0, 0.0, 0.5]);
+    assert_eq!(endings, vec![(2, crash(CrashKind::Wreck))]);
+    // Side by side in the two lanes, the left car drifts right into its neighbour.
+    scene.clear();
+    scene.place(0, east, 20.0, 0.0, -0.05, 5.0);
+    scene.place(1, east, 20.0, -2.4, 0.0, 5.0);
+    let endings = first_endings(&mut scene, &[0.0, 0.0, 0.0, 0.0, 0.0, -1.0]);
+    assert_eq!(
+        endings,
+        vec![
+            (0, crash(CrashKind::Sideswipe)),
+            (1, crash(CrashKind::Sideswipe))
+        ]
+    );
 }
 
 #[test]

@@ -98,6 +98,33 @@ fn table_numbers_come_from_evaluations_else_the_last_training_window() {
     );
     assert_eq!(row(&markdown, "roundabout", "Seeds")[1..], ["1, 2", "1, 2"]);
 
+    // How the evaluated episodes ended: ippo's evaluations count endings (rear-ends 30 and
+    // 10 of 200: 0.1 ± 12.7062 · 0.1/√2), cl's do not; most frequent first, and no section
+    // for the roundabout, which has no evaluations.
+    let endings = markdown
+        .split("## How evaluation episodes ended")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no endings section:\n{markdown}"));
+    assert!(
+        endings.contains("| `crash/entry/rear_end` | 0.1000 ± 0.6353 | — |"),
+        "{endings}"
+    );
+    let order: Vec<&str> = endings
+        .lines()
+        .filter_map(|l| l.strip_prefix("| `")?.split('`').next())
+        .collect();
+    assert_eq!(
+        order,
+        [
+            "success/exit",
+            "crash/entry/rear_end",
+            "out_of_road/junction",
+            "crash/junction/crossing",
+            "timeout/entry"
+        ]
+    );
+    assert!(endings.contains("### intersection") && !endings.contains("### roundabout"));
+
     // The unreadable run is named; the line cut short is counted, the rest of its run kept.
     assert!(markdown.contains("report-runs/broken`"), "{markdown}");
     assert!(

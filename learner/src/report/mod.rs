@@ -113,6 +113,9 @@ pub struct GroupSummary {
     /// Training success in MetaDrive's definition at each of the options' agent-step marks
     /// that every seed reached: (mark, mean ± interval over seeds).
     pub success_at_marks: Vec<(u64, Estimate)>,
+    /// Share of evaluation episodes per ending (`actor eval`'s `endings`), mean ± interval
+    /// over the seeds whose evaluations have them.
+    pub endings: BTreeMap<String, Estimate>,
 }
 
 /// The LCF angle φ (degrees) of each seed's final update, mean ± interval over seeds: the
@@ -320,6 +323,7 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
         mean_reach,
         best_success,
         lcf: final_lcf(members),
+        endings: ending_shares(members),
         success_at_marks: options
             .marks
             .iter()
@@ -332,6 +336,37 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
             })
             .collect(),
     }
+}
+
+/// Each ending's share of a run's evaluated episodes, mean ± interval over the runs whose
+/// evaluations count endings (0 for an ending a run never had).
+fn ending_shares(members: &[&Run]) -> BTreeMap<String, Estimate> {
+    let per_run: Vec<BTreeMap<&str, f64>> = members
+        .iter()
+        .filter_map(|r| {
+            let evals: Vec<_> = r.evals.iter().filter(|e| !e.endings.is_empty()).collect();
+            let episodes: u64 = evals.iter().map(|e| e.endings.values().sum::<u64>()).sum();
+            (episodes > 0).then(|| {
+                let mut shares = BTreeMap::new();
+                for (ending, count) in evals.iter().flat_map(|e| &e.endings) {
+                    *shares.entry(ending.as_str()).or_default() += *count as f64 / episodes as f64;
+                }
+                shares
+            })
+        })
+        .collect();
+    let endings: std::collections::BTreeSet<&str> =
+        per_run.iter().flat_map(|s| s.keys().copied()).collect();
+    endings
+        .into_iter()
+        .map(|ending| {
+            let values: Vec<f64> = per_run
+                .iter()
+                .map(|s| s.get(ending).copied().unwrap_or(0.0))
+                .collect();
+            (ending.to_string(), mean_t(&values))
+        })
+        .collect()
 }
 
 fn figure(
@@ -522,6 +557,7 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
     }
     marks_table(&mut md, &summary.groups);
     lcf_table(&mut md, &summary.groups);
+    endings_table(&mut md, &summary.groups);
     md.push_str("\n## Figures\n\nLines: mean over seeds of the training window (the last `run.stats_window_episodes` episodes) against agent-steps consumed; shading: range over seeds.\n\n");
     for key in FIGURE_METRICS {
         let label = metric_def(key).map_or(key, |d| d.label);
@@ -587,6 +623,53 @@ fn marks_table(md: &mut String, groups: &[GroupSummary]) {
                     " {} |",
                     reference.map_or("—".to_string(), |(_, v)| format!("*{v:.2}*"))
                 );
+            }
+            md.push('\n');
+        }
+    }
+}
+
+/// Where and how evaluation episodes ended, per scene: one row per ending, most frequent
+/// first, one column per method.
+fn endings_table(md: &mut String, groups: &[GroupSummary]) {
+    let mut scenes: Vec<&String> = groups.iter().map(|g| &g.scene).collect();
+    scenes.dedup();
+    let mut heading = false;
+    for scene in scenes {
+        let members: Vec<&GroupSummary> = groups.iter().filter(|g| &g.scene == scene).collect();
+        let mut endings: Vec<(&String, f64)> = Vec::new();
+        for g in &members {
+            for (ending, e) in &g.endings {
+                match endings.iter_mut().find(|(k, _)| *k == ending) {
+                    Some((_, most)) => *most = most.max(e.value),
+                    None => endings.push((ending, e.value)),
+                }
+            }
+        }
+        if endings.is_empty() {
+            continue;
+        }
+        endings.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(b.0)));
+        if !heading {
+            md.push_str(
+                "\n## How evaluation episodes ended\n\nShare of the evaluated agent episodes by \
+                 outcome and route stage (`entry`: the approach lane, `junction`: inside the \
+                 junction or on the ring, `exit`: the exit lane) and, for crashes, by what the \
+                 car hit (docs/EVALUATION.md), mean ± 95 % over seeds.\n",
+            );
+            heading = true;
+        }
+        let _ = write!(md, "\n### {scene}\n\n| Ending |");
+        for g in &members {
+            let _ = write!(md, " {} |", g.method);
+        }
+        md.push_str("\n|---|");
+        md.push_str(&"---|".repeat(members.len()));
+        md.push('\n');
+        for (ending, _) in endings {
+            let _ = write!(md, "| `{ending}` |");
+            for g in &members {
+                let _ = write!(md, " {} |", cell(g.endings.get(ending)));
             }
             md.push('\n');
         }
@@ -740,6 +823,7 @@ mod tests {
             best_success: None,
             lcf: Some(lcf),
             success_at_marks: Vec::new(),
+            endings: BTreeMap::new(),
         };
         lcf_table(&mut markdown, &[group]);
         assert!(
