@@ -256,11 +256,21 @@ pub fn obs_dim_from_meta(decoded: &Decoded) -> Result<i64, WeightsError> {
     }
 }
 
+/// Where a Gaussian policy's standard deviation comes from (`ppo.action_std`).
+pub use crate::config::ActionStd;
+
+/// Metadata key of a blob's [`ActionStd`]; blobs without it have a global one (they predate
+/// the choice).
+const ACTION_STD_KEY: &str = "action_std";
+
 #[derive(Debug)]
 pub struct GaussianPolicy {
     vs: nn::VarStore,
+    /// The mean, and with a state-dependent std its log-offset from `log_std` too.
     net: Mlp,
+    /// The log-std (global), or the learned bias the network's log-std output is added to.
     log_std: Tensor,
+    action_std: ActionStd,
     norm: ObsNormTensors,
     obs_dim: i64,
     action_dim: i64,
@@ -271,6 +281,7 @@ impl GaussianPolicy {
     /// [`KIND_KEY`] value of its blobs.
     pub const KIND: &'static str = "gaussian";
 
+    /// A policy with one global log-std per action value.
     pub fn new(
         device: Device,
         obs_dim: i64,
@@ -278,9 +289,26 @@ impl GaussianPolicy {
         hidden: &[i64],
         init_log_std: f64,
     ) -> Self {
+        Self::with_std(device, obs_dim, action_dim, hidden, init_log_std, ActionStd::Global)
+    }
+
+    /// A policy whose std is `action_std`; its log-std starts near `init_log_std` either way
+    /// (a state-dependent output starts near 0 on top of the bias).
+    pub fn with_std(
+        device: Device,
+        obs_dim: i64,
+        action_dim: i64,
+        hidden: &[i64],
+        init_log_std: f64,
+        action_std: ActionStd,
+    ) -> Self {
         let vs = nn::VarStore::new(device);
         let root = vs.root();
-        let net = Mlp::new(&root / "policy", obs_dim, hidden, action_dim, 0.01);
+        let outputs = match action_std {
+            ActionStd::Global => action_dim,
+            ActionStd::State => 2 * action_dim,
+        };
+        let net = Mlp::new(&root / "policy", obs_dim, hidden, outputs, 0.01);
         let log_std = root.var(
             "policy_log_std",
             &[action_dim],
@@ -291,6 +319,7 @@ impl GaussianPolicy {
             vs,
             net,
             log_std,
+            action_std,
             norm,
             obs_dim,
             action_dim,
@@ -328,11 +357,26 @@ impl GaussianPolicy {
         self.norm.normalize(obs)
     }
 
-    /// Mean action and log-std (broadcast to the batch) for normalised observations.
+    /// Mean action and log-std, one row per normalised observation.
     pub fn distribution(&self, obs_normalized: &Tensor) -> (Tensor, Tensor) {
-        let mean = self.net.forward(obs_normalized);
-        let log_std = self.log_std.expand_as(&mean);
-        (mean, log_std)
+        let out = self.net.forward(obs_normalized);
+        match self.action_std {
+            ActionStd::Global => {
+                let log_std = self.log_std.expand_as(&out);
+                (out, log_std)
+            }
+            ActionStd::State => {
+                let (mean, offset) = (
+                    out.narrow(-1, 0, self.action_dim),
+                    out.narrow(-1, self.action_dim, self.action_dim),
+                );
+                (mean, offset + &self.log_std)
+            }
+        }
+    }
+
+    pub fn action_std(&self) -> ActionStd {
+        self.action_std
     }
 
     /// Batched inference for actors: `obs` row-major [rows][obs_dim]; `noise` [rows][action_dim]
@@ -387,6 +431,10 @@ impl GaussianPolicy {
             ("obs_dim".to_string(), self.obs_dim.to_string()),
             ("action_dim".to_string(), self.action_dim.to_string()),
             ("hidden".to_string(), hidden_to_meta(&self.hidden)),
+            (
+                ACTION_STD_KEY.to_string(),
+                self.action_std.label().to_string(),
+            ),
         ]);
         weights::encode(&refs, metadata)
     }
@@ -410,12 +458,23 @@ impl GaussianPolicy {
                 key: "action_dim".into(),
             });
         }
+        let action_std = match decoded.metadata.get(ACTION_STD_KEY) {
+            None => ActionStd::Global,
+            Some(label) => ActionStd::from_label(label).ok_or_else(|| WeightsError::Metadata {
+                key: ACTION_STD_KEY.into(),
+            })?,
+        };
+        let outputs = match action_std {
+            ActionStd::Global => action_dim,
+            ActionStd::State => 2 * action_dim,
+        };
         // The log-std beside the network and its normaliser.
         ensure_blob_holds(
             &decoded,
-            minimum_values(obs_dim, &hidden, action_dim) + action_dim,
+            minimum_values(obs_dim, &hidden, outputs) + action_dim,
         )?;
-        let policy = GaussianPolicy::new(device, obs_dim, action_dim, &hidden, 0.0);
+        let policy =
+            GaussianPolicy::with_std(device, obs_dim, action_dim, &hidden, 0.0, action_std);
         weights::load_var_store(&policy.vs, &mut decoded)?;
         Ok((policy, meta))
     }
@@ -644,6 +703,51 @@ mod tests {
         assert!(matches!(
             other.load_bytes(&bytes),
             Err(WeightsError::Missing(_) | WeightsError::Shape { .. })
+        ));
+    }
+
+    #[test]
+    fn a_state_dependent_std_varies_by_state_and_travels_in_the_blob() {
+        tch::manual_seed(4);
+        let p = GaussianPolicy::with_std(Device::Cpu, 5, 2, &[8], -0.5, ActionStd::State);
+        let obs = Tensor::from_slice(&[0.1f32, 0.2, 0.3, 0.4, 0.5, -3.0, 2.0, 0.0, 1.0, -1.0])
+            .reshape([2, 5]);
+        let (mean, log_std) = p.distribution(&obs);
+        assert_eq!((mean.size(), log_std.size()), (vec![2, 2], vec![2, 2]));
+        let log_std = Vec::<f32>::try_from(log_std.flatten(0, -1)).unwrap();
+        assert_ne!(log_std[..2], log_std[2..], "one std per state");
+        // Near the initial value: the network's offset starts small.
+        assert!(log_std.iter().all(|l| (l + 0.5).abs() < 0.1), "{log_std:?}");
+        let noise = [0.3f32, -1.0, 0.5, 2.0];
+        let flat: Vec<f32> = Vec::<f32>::try_from(obs.flatten(0, -1)).unwrap();
+        let bytes = p.to_bytes(7).unwrap();
+        let (q, _) = GaussianPolicy::from_bytes(&bytes, Device::Cpu).unwrap();
+        assert_eq!(q.action_std(), ActionStd::State);
+        assert_eq!(q.act(&flat, &noise).unwrap(), p.act(&flat, &noise).unwrap());
+        // A global-std policy of the same layers cannot take its weights, nor the reverse.
+        let mut global = GaussianPolicy::new(Device::Cpu, 5, 2, &[8], -0.5);
+        assert!(global.load_bytes(&bytes).is_err());
+        let mut state = GaussianPolicy::with_std(Device::Cpu, 5, 2, &[8], -0.5, ActionStd::State);
+        assert!(state.load_bytes(&global.to_bytes(1).unwrap()).is_err());
+        // An unknown kind of std in the metadata is refused, not guessed.
+        let named = p.named_tensors();
+        let refs: Vec<(String, &Tensor)> = named.iter().map(|(n, t)| (n.clone(), t)).collect();
+        let mut metadata: BTreeMap<String, String> = [
+            ("version", "1"),
+            ("obs_layout_version", "1"),
+            ("obs_dim", "5"),
+            ("action_dim", "2"),
+            ("hidden", "8"),
+            ("action_std", "per-episode"),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect();
+        metadata.insert("obs_layout_version".into(), OBS_LAYOUT_VERSION.to_string());
+        let odd = weights::encode(&refs, metadata).unwrap();
+        assert!(matches!(
+            GaussianPolicy::from_bytes(&odd, Device::Cpu),
+            Err(WeightsError::Metadata { key }) if key == "action_std"
         ));
     }
 }

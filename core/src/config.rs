@@ -293,9 +293,35 @@ pub struct PpoConfig {
     pub normalize_advantages: bool,
     pub normalize_observations: bool,
     pub objective: PpoObjective,
+    pub action_std: ActionStd,
     pub max_importance_weight: f64,
     pub kl_coef: f64,
     pub kl_target: f64,
+}
+
+/// Where the Gaussian policy's standard deviation comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ActionStd {
+    /// One learned log-std per action value, the same in every state.
+    Global,
+    /// The network outputs the log-std beside the mean, per state.
+    State,
+}
+
+impl ActionStd {
+    pub fn label(self) -> &'static str {
+        match self {
+            ActionStd::Global => "global",
+            ActionStd::State => "state",
+        }
+    }
+
+    pub fn from_label(label: &str) -> Option<ActionStd> {
+        [ActionStd::Global, ActionStd::State]
+            .into_iter()
+            .find(|s| s.label() == label)
+    }
 }
 
 /// How the PPO algorithms treat data from actors whose policy lags the learner's.

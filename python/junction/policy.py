@@ -4,7 +4,9 @@ included, acting exactly as the Rust actor does.
 
 The Rust actor's behaviour, reproduced op for op: observations normalised as
 `clamp((obs − mean) / sqrt(var + 1e-8), −10, 10)`; the mean action from an MLP with tanh
-hidden layers; the action `mean + exp(log_std) · noise` with standard-normal noise, *not*
+hidden layers, which with a state-dependent std (`action_std = "state"` in the blob's
+metadata) also outputs a log-std offset added to the learned `policy_log_std`; the action
+`mean + exp(log_std) · noise` with standard-normal noise, *not*
 clipped (the simulator clips what it applies, the fragment ships the action itself); and its
 log-probability `Σ −z²/2 − log_std − ln(2π)/2` with `z = (action − mean) / exp(log_std)`,
 summed over the two action values, in float32.
@@ -98,6 +100,9 @@ class GaussianPolicy:
             hidden = [int(h) for h in meta["hidden"].split(",")]
         except (KeyError, ValueError) as e:
             raise PolicyError(f"the blob's metadata is incomplete or invalid: {e}") from None
+        self.state_std = meta.get("action_std", "global") == "state"
+        if meta.get("action_std", "global") not in ("global", "state"):
+            raise PolicyError(f"the blob's action_std {meta['action_std']!r} is neither global nor state")
         if layout != OBS_LAYOUT_VERSION:
             raise PolicyError(
                 f"the policy was trained on observation layout {layout}; this package builds "
@@ -107,7 +112,8 @@ class GaussianPolicy:
         t = lambda name: torch.from_numpy(_tensor(tensors, name).copy())  # noqa: E731
         self.layers = []
         width = self.obs_dim
-        for i, size in enumerate(hidden + [self.action_dim]):
+        outputs = 2 * self.action_dim if self.state_std else self.action_dim
+        for i, size in enumerate(hidden + [outputs]):
             w, b = t(f"policy.l{i}.weight"), t(f"policy.l{i}.bias")
             if w.shape != (size, width) or b.shape != (size,):
                 raise PolicyError(f"layer {i} has shape {tuple(w.shape)}, expected {(size, width)}")
@@ -124,14 +130,18 @@ class GaussianPolicy:
         self._std_denominator = torch.sqrt(self.var + OBS_VAR_EPS)
         self._half_ln_2pi = 0.5 * math.log(2.0 * math.pi)
 
-    def _mean(self, obs: torch.Tensor) -> torch.Tensor:
+    def _distribution(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean action and log-std of each row."""
         h = torch.clamp((obs - self.mean) / self._std_denominator, -OBS_CLIP, OBS_CLIP)
         last = len(self.layers) - 1
         for i, (w, b) in enumerate(self.layers):
             h = torch.nn.functional.linear(h, w, b)
             if i != last:
                 h = torch.tanh(h)
-        return h
+        if self.state_std:
+            a = self.action_dim
+            return h[:, :a], h[:, a:] + self.log_std
+        return h, self.log_std.expand_as(h)
 
     def act(self, obs: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Actions (unclipped) and their log-probabilities for `obs` (rows × obs_dim) and
@@ -139,8 +149,7 @@ class GaussianPolicy:
         with torch.no_grad():
             o = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32))
             z_in = torch.from_numpy(np.ascontiguousarray(noise, dtype=np.float32))
-            mean = self._mean(o)
-            log_std = self.log_std.expand_as(mean)
+            mean, log_std = self._distribution(o)
             actions = mean + log_std.exp() * z_in
             z = (actions - mean) / log_std.exp()
             per_dim = z.square() * -0.5 - log_std - self._half_ln_2pi

@@ -1,12 +1,12 @@
 //! The Python actors act with the broadcast policy exactly as the Rust actor does: the same
 //! blob, observations and noise give the same actions and behaviour log-probabilities through
-//! `junction.policy` (PyTorch) as through `junction_common::policy` (tch), and CoPO's LCF
-//! distribution reads back from the blob's metadata.
+//! `junction.policy` (PyTorch) as through `junction_common::policy` (tch), with a global or a
+//! state-dependent std, and CoPO's LCF distribution reads back from the blob's metadata.
 
 use std::process::Command;
 
 use junction_common::lcf::LcfDistribution;
-use junction_common::policy::{GaussianPolicy, ObsNormalizer};
+use junction_common::policy::{ActionStd, GaussianPolicy, ObsNormalizer};
 use junction_tests::{TempDir, workspace_root};
 use tch::Device;
 
@@ -37,8 +37,18 @@ fn write_f32(path: &std::path::Path, values: &[f32]) {
 
 #[test]
 fn python_policy_acts_bit_for_bit_as_the_rust_actor() {
+    acts_bit_for_bit(ActionStd::Global);
+}
+
+#[test]
+fn python_policy_with_a_state_dependent_std_acts_bit_for_bit_as_the_rust_actor() {
+    acts_bit_for_bit(ActionStd::State);
+}
+
+fn acts_bit_for_bit(action_std: ActionStd) {
     tch::manual_seed(17);
-    let mut policy = GaussianPolicy::new(Device::Cpu, OBS_DIM as i64, 2, &[64, 32], -0.7);
+    let mut policy =
+        GaussianPolicy::with_std(Device::Cpu, OBS_DIM as i64, 2, &[64, 32], -0.7, action_std);
     // A normaliser that matters: statistics of rows unlike the evaluated ones.
     let rows: Vec<f32> = (0..200 * OBS_DIM)
         .map(|i| ((i * 37 % 101) as f32 / 101.0).powi(2))
@@ -58,9 +68,13 @@ fn python_policy_acts_bit_for_bit_as_the_rust_actor() {
         .map(|i| ((i * 29 % 61) as f32 - 30.0) / 12.0)
         .collect();
     let (actions, log_probs) = policy.act(&obs, &noise).unwrap();
-    let (mean, _) = policy.act(&obs, &vec![0.0; ROWS * 2]).unwrap();
+    let (mean, mean_log_probs) = policy.act(&obs, &vec![0.0; ROWS * 2]).unwrap();
+    // At the mean the log-probability is −Σ log std − ln 2π: the same for every row exactly
+    // when the std does not depend on the state.
+    let per_state = mean_log_probs.iter().any(|&l| l != mean_log_probs[0]);
+    assert_eq!(per_state, action_std == ActionStd::State, "{mean_log_probs:?}");
 
-    let dir = TempDir::new("python-policy");
+    let dir = TempDir::new(&format!("python-policy-{}", action_std.label()));
     let file = |name: &str| dir.path().join(name);
     std::fs::write(file("policy.safetensors"), &blob).unwrap();
     write_f32(&file("obs.bin"), &obs);

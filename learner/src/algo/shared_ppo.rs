@@ -82,12 +82,13 @@ impl<C: CriticInput> SharedPpo<C> {
         device: Device,
     ) -> Self {
         let config = &run.ppo;
-        let policy = GaussianPolicy::new(
+        let policy = GaussianPolicy::with_std(
             device,
             obs_dim as i64,
             action_dim as i64,
             &config.hidden,
             config.init_log_std,
+            config.action_std,
         );
         let critic_store = nn::VarStore::new(device);
         let width = critic_input.width(obs_dim, action_dim) as i64;
