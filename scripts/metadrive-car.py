@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Measures MetaDrive's car, for docs/SIMULATOR.md ("Dynamics"): acceleration from rest, braking
-from 15 m/s, and the yaw and lateral acceleration of a full steering step at 5, 10 and 15 m/s.
+from 15 m/s, coasting and braking with 0.1 to all of the pedal from 10 m/s, and the
+yaw and lateral acceleration of a full steering step at 5, 10 and 15 m/s.
 
 One car in MetaDrive's multi-agent intersection (physics only, 0.1 s decision steps, crashes
 and leaving the road not ending it). Needs PyPI `metadrive-simulator` in the venv:
@@ -65,6 +66,9 @@ def main():
     report = {"throttle_speed_every_0.1s": throttle}
     agent, car, _ = start(15.0)
     report["brake_from_15"] = hold(agent, car, [0.0, -1.0], 10)
+    for pedal in (0.0, 0.1, 0.3, 0.45, 0.6, 0.8, 1.0):
+        agent, car, _ = start(10.0)
+        report[f"pedal_{pedal}_from_10"] = hold(agent, car, [0.0, -pedal], 3)
     for speed in (5, 10, 15):
         agent, car, _ = start(speed)
         # MetaDrive's steering +1 turns left (yaw rate > 0).

@@ -211,6 +211,8 @@ pub struct VehicleConfig {
     pub max_lateral_accel: f32,
     /// Deceleration of full braking, m/s².
     pub max_brake_decel: f32,
+    /// Brake pedal (the negative throttle_brake) at which braking reaches `max_brake_decel`.
+    pub brake_saturation: f32,
     /// Time constant of the wheel's lag behind the steering action, seconds; 0 = none.
     pub steering_time_constant: f32,
 }
@@ -961,11 +963,13 @@ impl ScenarioConfig {
         let v = &self.vehicle;
         if !(v.max_lateral_accel >= 0.0 && v.max_lateral_accel.is_finite())
             || !(v.max_brake_decel > 0.0 && v.max_brake_decel <= 20.0)
+            || !(v.brake_saturation > 0.0 && v.brake_saturation <= 1.0)
             || !(v.steering_time_constant >= 0.0 && v.steering_time_constant <= 5.0)
         {
             problems.push(
                 "scenario.vehicle.max_lateral_accel must be >= 0 (0 = no limit), \
-                 scenario.vehicle.max_brake_decel in (0, 20] m/s² and \
+                 scenario.vehicle.max_brake_decel in (0, 20] m/s², \
+                 scenario.vehicle.brake_saturation in (0, 1] and \
                  scenario.vehicle.steering_time_constant in [0, 5] s"
                     .into(),
             );

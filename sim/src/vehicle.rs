@@ -44,6 +44,8 @@ pub struct Dynamics {
     pub max_lateral_accel: f32,
     /// Deceleration of full braking, m/s² (brake force = this × mass).
     pub max_brake_decel: f32,
+    /// Brake pedal at which braking reaches `max_brake_decel` (1: proportional throughout).
+    pub brake_saturation: f32,
     /// Time constant of the wheel's first-order lag behind the steering action, seconds (0:
     /// the wheel turns at once).
     pub steering_time_constant: f32,
@@ -55,6 +57,7 @@ impl Default for Dynamics {
         Dynamics {
             max_lateral_accel: 0.0,
             max_brake_decel: 6.0,
+            brake_saturation: 1.0,
             steering_time_constant: 0.0,
         }
     }
@@ -65,6 +68,7 @@ impl From<&junction_core::config::VehicleConfig> for Dynamics {
         Dynamics {
             max_lateral_accel: c.max_lateral_accel,
             max_brake_decel: c.max_brake_decel,
+            brake_saturation: c.brake_saturation,
             steering_time_constant: c.steering_time_constant,
         }
     }
@@ -128,7 +132,8 @@ impl Kinematics {
     fn acceleration(&self, speed: f32) -> f32 {
         let engine = self.engine_force(speed);
         let resist = if speed > 0.0 {
-            (-self.throttle).max(0.0) * self.dynamics.max_brake_decel * MASS
+            let brake = ((-self.throttle).max(0.0) / self.dynamics.brake_saturation).min(1.0);
+            brake * self.dynamics.max_brake_decel * MASS
                 + ROLLING_RESISTANCE * MASS * GRAVITY
                 + DRAG_FACTOR * speed * speed
         } else {
@@ -283,6 +288,28 @@ mod tests {
         k.advance([0.0, -1.0], 0.1, 5);
         // 8.5 from the brake, ≈ 0.15 rolling resistance, ≈ 0.04 drag at 10 m/s.
         assert!((k.speed - (10.0 - 0.1 * 8.69)).abs() < 0.01, "{}", k.speed);
+    }
+
+    #[test]
+    fn braking_saturates_at_the_configured_pedal() {
+        // MetaDrive-like: 15 m/s² reached at 0.6 of the pedal, proportional below it.
+        let strong = Dynamics {
+            max_brake_decel: 15.0,
+            brake_saturation: 0.6,
+            ..Dynamics::default()
+        };
+        let decel = |pedal: f32, dynamics: Dynamics| {
+            let mut k = Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(dynamics);
+            k.advance([0.0, -pedal], 0.01, 1);
+            (10.0 - k.speed) / 0.01
+        };
+        // Rolling resistance (0.147) and drag (0.037 at 10 m/s) come on top of the brake.
+        let rest = 0.015 * 9.81 + 0.5 * 1.225 * 0.30 * 2.2 * 100.0 / MASS;
+        assert!((decel(0.3, strong) - (7.5 + rest)).abs() < 0.01, "{}", decel(0.3, strong));
+        assert!((decel(0.6, strong) - (15.0 + rest)).abs() < 0.01);
+        assert!((decel(1.0, strong) - (15.0 + rest)).abs() < 0.01, "saturated");
+        // The default is proportional over the whole pedal.
+        assert!((decel(0.3, Dynamics::default()) - (1.8 + rest)).abs() < 0.01);
     }
 
     #[test]
