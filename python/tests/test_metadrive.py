@@ -159,4 +159,6 @@ def test_metadrive_eval_writes_actor_evals_report_and_actor_eval_reads_the_check
         check=True, capture_output=True, timeout=300,
     )
     rust = json.loads((junction / "eval-intersection-metadrive-seed5.json").read_text())
-    assert rust.keys() == md.keys() and rust["metrics"].keys() == md["metrics"].keys()
+    # The same JSON either way, except the endings, which MetaDrive's simulator does not report.
+    assert rust.keys() - {"endings"} == md.keys() and "endings" not in md
+    assert rust["metrics"].keys() == md["metrics"].keys()
