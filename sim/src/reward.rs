@@ -113,7 +113,7 @@ mod tests {
             collided: true,
             ..facts()
         };
-        assert_eq!(reward(&r, &crash), -5.0);
+        assert_eq!(reward(&r, &crash), -10.0);
         let arrived = StepFacts {
             outcome: Some(Outcome::Success),
             ..facts()
@@ -137,8 +137,8 @@ mod tests {
             collided: true,
             ..facts()
         };
-        // 1.58 − 1.0 (P_collision) − 5 (termination)
-        assert!(close(reward(&r, &crash), 1.58 - 6.0));
+        // 1.58 − 1.0 (P_collision) − 10 (termination)
+        assert!(close(reward(&r, &crash), 1.58 - 11.0));
         let off_lane = StepFacts {
             lateral: -7.0,
             ..facts()
