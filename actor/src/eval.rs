@@ -197,7 +197,10 @@ mod tests {
                 .map(|e| u64::from(e.steps))
                 .sum::<u64>()
         );
-        assert!(tally.scene_steps <= 2 * rounds as u64, "both scenes step every round");
+        assert!(
+            tally.scene_steps <= 2 * rounds as u64,
+            "both scenes step every round"
+        );
         assert_eq!(
             tally.episodes.len() as u64,
             tally

@@ -11,8 +11,8 @@ use std::process::{Child, ChildStdin, Command, Stdio};
 
 use anyhow::{Context, bail, ensure};
 
-use junction_sim::render::Frame;
 use crate::replay::GifWriter;
+use junction_sim::render::Frame;
 
 /// The encoder program looked up on PATH.
 const FFMPEG: &str = "ffmpeg";

@@ -289,7 +289,14 @@ impl GaussianPolicy {
         hidden: &[i64],
         init_log_std: f64,
     ) -> Self {
-        Self::with_std(device, obs_dim, action_dim, hidden, init_log_std, ActionStd::Global)
+        Self::with_std(
+            device,
+            obs_dim,
+            action_dim,
+            hidden,
+            init_log_std,
+            ActionStd::Global,
+        )
     }
 
     /// A policy whose std is `action_std`; its log-std starts near `init_log_std` either way
@@ -592,7 +599,12 @@ mod tests {
         let kl = gaussian_kl(&t(&[0.0]), &t(&[0.0]), &t(&[1.0]), &t(&[2f32.ln()]));
         let expected = 2f64.ln() + 0.25 - 0.5;
         assert!((f64::try_from(kl.sum(Kind::Float)).unwrap() - expected).abs() < 1e-6);
-        let same = gaussian_kl(&t(&[0.3, -1.0]), &t(&[0.1, 0.2]), &t(&[0.3, -1.0]), &t(&[0.1, 0.2]));
+        let same = gaussian_kl(
+            &t(&[0.3, -1.0]),
+            &t(&[0.1, 0.2]),
+            &t(&[0.3, -1.0]),
+            &t(&[0.1, 0.2]),
+        );
         assert!(f64::try_from(same.sum(Kind::Float)).unwrap().abs() < 1e-7);
     }
 

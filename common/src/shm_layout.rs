@@ -40,8 +40,7 @@
 use std::mem::MaybeUninit;
 
 use crate::fragment::{
-    EpisodeStats, FragmentError, MAX_NAME_BYTES, Outcome, RolloutFragment, SceneEpisodeStats,
-    flags,
+    EpisodeStats, FragmentError, MAX_NAME_BYTES, Outcome, RolloutFragment, SceneEpisodeStats, flags,
 };
 use crate::lcf;
 
@@ -225,9 +224,10 @@ pub fn encode_into(
         })?);
     }
     w.bytes(&fragment.sim_seconds.to_ne_bytes());
-    w.u32(u32::try_from(counts.scene_episodes).map_err(|_| {
-        FragmentError::Shape("too many scene episodes for the header".into())
-    })?);
+    w.u32(
+        u32::try_from(counts.scene_episodes)
+            .map_err(|_| FragmentError::Shape("too many scene episodes for the header".into()))?,
+    );
     w.bytes(&[0; 8]);
     for values in [
         &fragment.obs,

@@ -340,7 +340,9 @@ impl EvalReport {
             ));
         }
         if !self.endings.is_empty() {
-            out.push_str("\nhow agent episodes ended (outcome/route stage[/what a crashed car hit])\n");
+            out.push_str(
+                "\nhow agent episodes ended (outcome/route stage[/what a crashed car hit])\n",
+            );
             let mut endings: Vec<(&String, &u64)> = self.endings.iter().collect();
             endings.sort_by(|a, b| b.1.cmp(a.1).then(a.0.cmp(b.0)));
             for (ending, count) in endings {
@@ -539,9 +541,15 @@ mod tests {
         // The metrics, then a blank line, a heading and the endings, most frequent first.
         let lines: Vec<&str> = table.lines().collect();
         assert_eq!(lines.len(), 4 + METRICS.len() + 2 + 4, "{table}");
-        assert!(lines[4 + METRICS.len() + 2].starts_with("success/exit"), "{table}");
+        assert!(
+            lines[4 + METRICS.len() + 2].starts_with("success/exit"),
+            "{table}"
+        );
         assert!(lines[4 + METRICS.len() + 2].ends_with("40.0 %"), "{table}");
-        assert!(lines[4 + METRICS.len() + 3].starts_with("crash/entry/rear_end"), "{table}");
+        assert!(
+            lines[4 + METRICS.len() + 3].starts_with("crash/entry/rear_end"),
+            "{table}"
+        );
         let json = serde_json::to_string(&report).unwrap();
         let back: EvalReport = serde_json::from_str(&json).unwrap();
         assert_eq!(back, report);

@@ -292,7 +292,10 @@ mod tests {
         assert!((s.crash_rate - 0.275).abs() < 1e-12);
         assert!((s.timeout_rate - 0.3).abs() < 1e-12);
         assert_eq!((s.mean_agents, s.mean_steps), (52.0, 1000.0));
-        assert_eq!(SceneEpisodeWindow::new(5).summary(), SceneWindowSummary::default());
+        assert_eq!(
+            SceneEpisodeWindow::new(5).summary(),
+            SceneWindowSummary::default()
+        );
     }
 
     #[test]

@@ -394,11 +394,7 @@ impl VectorEnv {
 
     /// Neighbour lists of scene `scene` (CSR: the neighbours of slot i are
     /// `ids[offsets[i]:offsets[i + 1]]`, nearest first).
-    fn neighbours<'py>(
-        &self,
-        py: Python<'py>,
-        scene: usize,
-    ) -> PyResult<Csr<'py>> {
+    fn neighbours<'py>(&self, py: Python<'py>, scene: usize) -> PyResult<Csr<'py>> {
         let (offsets, ids) = self.scene(scene)?.neighbours();
         Ok((
             PyArray1::from_slice(py, offsets),

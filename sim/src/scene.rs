@@ -10,7 +10,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use junction_core::config::{AfterHorizon, ScenarioConfig, SceneKind, Simulator};
-use junction_core::episode::{CrashKind, Ending, EpisodeStats, Outcome, RouteStage, SceneEpisodeStats};
+use junction_core::episode::{
+    CrashKind, Ending, EpisodeStats, Outcome, RouteStage, SceneEpisodeStats,
+};
 use junction_core::lcf_inputs;
 use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 

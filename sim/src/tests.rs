@@ -147,7 +147,10 @@ fn a_crash_ending_says_what_the_car_hit_and_where() {
     let endings = first_endings(&mut scene, &[0.0, -1.0, 0.0, 0.5, 0.0, -1.0]);
     assert_eq!(
         endings,
-        vec![(0, crash(CrashKind::RearEnd)), (1, crash(CrashKind::RearEnd))]
+        vec![
+            (0, crash(CrashKind::RearEnd)),
+            (1, crash(CrashKind::RearEnd))
+        ]
     );
     // The next car on that lane runs into their wrecks.
     scene.place(2, east, 10.0, 0.0, 0.0, 8.0);

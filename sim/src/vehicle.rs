@@ -150,7 +150,11 @@ impl Kinematics {
         self.throttle = clean(action[1]);
         let h = dt / substeps.max(1) as f32;
         let tau = self.dynamics.steering_time_constant;
-        let follow = if tau > 0.0 { 1.0 - (-h / tau).exp() } else { 1.0 };
+        let follow = if tau > 0.0 {
+            1.0 - (-h / tau).exp()
+        } else {
+            1.0
+        };
         let mut energy_j = 0.0;
         for _ in 0..substeps.max(1) {
             self.wheel += (self.steer - self.wheel) * follow;
@@ -262,7 +266,11 @@ mod tests {
         let mut k = Kinematics::new(Vec2::ZERO, 0.0, 10.0).with_dynamics(lagging);
         k.advance([1.0, 0.0], 0.1, 5);
         // After 0.1 s: 1 − e^(−0.1/0.25) = 0.33 of full lock (exactly, over 5 sub-steps).
-        assert!((k.wheel - (1.0 - (-0.4f32).exp())).abs() < 1e-5, "{}", k.wheel);
+        assert!(
+            (k.wheel - (1.0 - (-0.4f32).exp())).abs() < 1e-5,
+            "{}",
+            k.wheel
+        );
         assert_eq!(k.steer, 1.0, "the action itself is kept");
         for _ in 0..20 {
             k.advance([1.0, 0.0], 0.1, 5);
@@ -305,9 +313,16 @@ mod tests {
         };
         // Rolling resistance (0.147) and drag (0.037 at 10 m/s) come on top of the brake.
         let rest = 0.015 * 9.81 + 0.5 * 1.225 * 0.30 * 2.2 * 100.0 / MASS;
-        assert!((decel(0.3, strong) - (7.5 + rest)).abs() < 0.01, "{}", decel(0.3, strong));
+        assert!(
+            (decel(0.3, strong) - (7.5 + rest)).abs() < 0.01,
+            "{}",
+            decel(0.3, strong)
+        );
         assert!((decel(0.6, strong) - (15.0 + rest)).abs() < 0.01);
-        assert!((decel(1.0, strong) - (15.0 + rest)).abs() < 0.01, "saturated");
+        assert!(
+            (decel(1.0, strong) - (15.0 + rest)).abs() < 0.01,
+            "saturated"
+        );
         // The default is proportional over the whole pedal.
         assert!((decel(0.3, Dynamics::default()) - (1.8 + rest)).abs() < 0.01);
     }

@@ -72,7 +72,11 @@ fn acts_bit_for_bit(action_std: ActionStd) {
     // At the mean the log-probability is −Σ log std − ln 2π: the same for every row exactly
     // when the std does not depend on the state.
     let per_state = mean_log_probs.iter().any(|&l| l != mean_log_probs[0]);
-    assert_eq!(per_state, action_std == ActionStd::State, "{mean_log_probs:?}");
+    assert_eq!(
+        per_state,
+        action_std == ActionStd::State,
+        "{mean_log_probs:?}"
+    );
 
     let dir = TempDir::new(&format!("python-policy-{}", action_std.label()));
     let file = |name: &str| dir.path().join(name);

@@ -43,11 +43,19 @@ fn row<'a>(markdown: &'a str, scene: &str, label: &str) -> Vec<&'a str> {
         .unwrap_or_else(|| panic!("no table for {scene}:\n{markdown}"));
     // The row of exactly that metric ("Success rate ↑", not "Success rate (MetaDrive) ↑"),
     // else the first whose label starts with it.
-    let exact = |l: &&str| [" ↑", " ↓"].iter().any(|a| l.starts_with(&format!("| {label}{a}")));
+    let exact = |l: &&str| {
+        [" ↑", " ↓"]
+            .iter()
+            .any(|a| l.starts_with(&format!("| {label}{a}")))
+    };
     let line = section
         .lines()
         .find(exact)
-        .or_else(|| section.lines().find(|l| l.starts_with(&format!("| {label}"))))
+        .or_else(|| {
+            section
+                .lines()
+                .find(|l| l.starts_with(&format!("| {label}")))
+        })
         .unwrap_or_else(|| panic!("no row {label:?} for {scene}:\n{section}"));
     line.trim_matches('|').split('|').map(str::trim).collect()
 }

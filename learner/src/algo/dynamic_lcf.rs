@@ -340,7 +340,11 @@ mod tests {
         }
         let report = dynamic.report(&[neighbourhood_fragment()], &batch).unwrap();
         // 5 of the 11 agent-steps have neighbours.
-        assert!((report.mean_deg - 30.0 * 5.0 / 11.0).abs() < 1e-4, "{}", report.mean_deg);
+        assert!(
+            (report.mean_deg - 30.0 * 5.0 / 11.0).abs() < 1e-4,
+            "{}",
+            report.mean_deg
+        );
         let lone = report.by_neighbours[0].unwrap();
         assert_eq!(lone, 0.0, "φ = 0 without neighbours");
         assert!((report.by_neighbours[1].unwrap() - 30.0).abs() < 1e-4);

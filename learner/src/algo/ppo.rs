@@ -147,13 +147,24 @@ mod tests {
         let terms = decoupled_surrogate(&new, &proximal, &behaviour, &t(&[1.0, 2.0]), 0.2, 1.2);
         let w1 = (-1.0f64).exp();
         let expected = -(1.2 * 1.0 + w1 * 1.2 * 2.0) / 2.0;
-        assert!((scalar(&terms.loss) - expected).abs() < 1e-5, "{}", scalar(&terms.loss));
+        assert!(
+            (scalar(&terms.loss) - expected).abs() < 1e-5,
+            "{}",
+            scalar(&terms.loss)
+        );
         // The clip is taken around π_prox, not π_b: row 1 is clipped, row 0 is not.
         assert!((scalar(&terms.clip_fraction) - 0.5).abs() < 1e-6);
         terms.loss.backward();
         let g = Vec::<f32>::try_from(new.grad()).unwrap();
-        assert!((g[0] + 0.6).abs() < 1e-5, "−w·A·ρ/n = −1.2·1·1/2, got {}", g[0]);
-        assert_eq!(g[1], 0.0, "clipped in the advantage's direction: no gradient");
+        assert!(
+            (g[0] + 0.6).abs() < 1e-5,
+            "−w·A·ρ/n = −1.2·1·1/2, got {}",
+            g[0]
+        );
+        assert_eq!(
+            g[1], 0.0,
+            "clipped in the advantage's direction: no gradient"
+        );
         // With no lag (π_prox = π_b) it is plain PPO.
         let plain = clipped_surrogate(&new, &proximal, &t(&[1.0, 2.0]), 0.2);
         let same = decoupled_surrogate(&new, &proximal, &proximal, &t(&[1.0, 2.0]), 0.2, 1.0);

@@ -216,9 +216,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             })
         });
         let proximal_log_probs = match (&start, decoupled) {
-            (Some((mean, log_std)), true) => {
-                Some(tch::no_grad(|| gaussian_log_prob(mean, log_std, &batch.actions)))
-            }
+            (Some((mean, log_std)), true) => Some(tch::no_grad(|| {
+                gaussian_log_prob(mean, log_std, &batch.actions)
+            })),
             _ => None,
         };
         let before = if self.coordination.learns() {
@@ -277,7 +277,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                     gaussian_log_prob(&mean, &log_std, &batch.actions.index_select(0, &idx));
                 let behaviour_log_probs = batch.old_log_probs.index_select(0, &idx);
                 let surrogate = match &proximal_log_probs {
-                    None => clipped_surrogate(&log_probs, &behaviour_log_probs, &advantages, c.clip),
+                    None => {
+                        clipped_surrogate(&log_probs, &behaviour_log_probs, &advantages, c.clip)
+                    }
                     Some(proximal) => decoupled_surrogate(
                         &log_probs,
                         &proximal.index_select(0, &idx),
@@ -740,10 +742,22 @@ mod tests {
         // Any update moves the policy by more than 2 · 1e-12, and by less than 1e6 / 2.
         let mut tight = kl_learner(1e-12);
         let stats = tight.update(std::slice::from_ref(&fragment)).unwrap();
-        assert!(stats.kl > 0.0, "the update moved the policy: KL {}", stats.kl);
+        assert!(
+            stats.kl > 0.0,
+            "the update moved the policy: KL {}",
+            stats.kl
+        );
         assert!((stats.kl_coef - 0.3).abs() < 1e-7, "{}", stats.kl_coef);
         let mut loose = kl_learner(1e6);
-        assert!((loose.update(std::slice::from_ref(&fragment)).unwrap().kl_coef - 0.1).abs() < 1e-7);
+        assert!(
+            (loose
+                .update(std::slice::from_ref(&fragment))
+                .unwrap()
+                .kl_coef
+                - 0.1)
+                .abs()
+                < 1e-7
+        );
         // The penalty changes the update: without it the policy ends elsewhere.
         let mut run = small_run();
         run.ppo.kl_target = 1e-12;

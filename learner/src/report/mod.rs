@@ -67,7 +67,9 @@ impl Default for ReportOptions {
             min_window_episodes: 100,
             curve_points: 120,
             group_by_dir: false,
-            marks: vec![1_000_000, 2_500_000, 5_000_000, 7_500_000, 10_000_000, 15_000_000],
+            marks: vec![
+                1_000_000, 2_500_000, 5_000_000, 7_500_000, 10_000_000, 15_000_000,
+            ],
         }
     }
 }
@@ -330,7 +332,12 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
             .filter_map(|&mark| {
                 let values: Vec<f64> = members
                     .iter()
-                    .map(|r| aggregate::interpolate(&aggregate::curve(r, "scene_success_rate"), mark as f64))
+                    .map(|r| {
+                        aggregate::interpolate(
+                            &aggregate::curve(r, "scene_success_rate"),
+                            mark as f64,
+                        )
+                    })
                     .collect::<Option<_>>()?;
                 Some((mark, mean_t(&values)))
             })
@@ -875,13 +882,19 @@ mod tests {
         let mut md = String::new();
         marks_table(&mut md, &[g]);
         assert!(md.contains("| intersection | ippo | 0.3000 ± "), "{md}");
-        assert!(md.contains("| intersection | *CoPO's IPPO (MetaDrive)* | *0.19* | *0.50* |"), "{md}");
+        assert!(
+            md.contains("| intersection | *CoPO's IPPO (MetaDrive)* | *0.19* | *0.50* |"),
+            "{md}"
+        );
     }
 
     #[test]
     fn variants_are_named_by_their_directory_without_the_seed() {
         use std::path::Path;
-        assert_eq!(runs::variant_name(Path::new("x/runs/no-grad-clip-s12")), "no-grad-clip");
+        assert_eq!(
+            runs::variant_name(Path::new("x/runs/no-grad-clip-s12")),
+            "no-grad-clip"
+        );
         assert_eq!(runs::variant_name(Path::new("x/tyres-s")), "tyres-s");
         assert_eq!(runs::variant_name(Path::new("plain")), "plain");
     }
