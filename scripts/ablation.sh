@@ -20,6 +20,9 @@
 #   EVAL_SEED        evaluation seed: a validation seed, not the one final results use [777]
 #   SCENARIO         scenario name or file [intersection]
 #   BIN              binaries [target/release]
+#   FROM             a runs directory of an earlier ablation with the same arm names: each run
+#                    starts as a copy of FROM/<arm>-s<seed> (its evaluation left behind) and
+#                    continues from its newest checkpoint to BUDGET agent-steps [none]
 # Resumable: a run whose evaluation exists is kept; a run without one is trained again.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -33,6 +36,7 @@ MAX_RUN_SECONDS=${MAX_RUN_SECONDS:-3600}
 EVAL_EPISODES=${EVAL_EPISODES:-1000}
 EVAL_SEED=${EVAL_SEED:-777}
 SCENARIO=${SCENARIO:-intersection}
+FROM=${FROM:-}
 
 say() { echo "ablation: $(date +%H:%M:%S) $*"; }
 [ -f "$ARMS" ] || { say "no arms file $ARMS" >&2; exit 1; }
@@ -63,10 +67,20 @@ for seed in $SEEDS; do
             continue
         fi
         rm -rf "$run_dir"
+        resume=0
+        if [ -n "$FROM" ]; then
+            if [ ! -d "$FROM/$name-s$seed/checkpoints" ]; then
+                say "$name seed $seed: no run to continue in $FROM/$name-s$seed"
+                continue
+            fi
+            cp -r "$FROM/$name-s$seed" "$run_dir"
+            rm -rf "$run_dir/eval"
+            resume=1
+        fi
         mkdir -p "$run_dir"
-        say "$name seed $seed: training (${flags[$i]:-defaults})"
+        say "$name seed $seed: training (${flags[$i]:-defaults})${FROM:+, continuing $FROM/$name-s$seed}"
         # shellcheck disable=SC2086 # the arm's flags are a list of flags
-        RUN_DIR="$run_dir" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
+        RUN_DIR="$run_dir" RESUME="$resume" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
             nice scripts/run-local.sh --scenario "$SCENARIO" --seed "$seed" \
             --set "run.max_agent_steps=$BUDGET" --set "run.progress_interval_s=5" \
             ${flags[$i]} >"$run_dir/train.log" 2>&1
