@@ -17,6 +17,14 @@ const FOLLOW_GAP: f32 = 8.0;
 /// Cruising speed of `actor bench` and `actor render`: fast enough that unsupervised junction
 /// crossings produce crashes.
 pub const CRUISE_SPEED_MPS: f32 = 10.0;
+/// The speed controller: throttle per m/s too slow, and deceleration (m/s²) per m/s too fast up
+/// to `MAX_BRAKE_DECEL`, turned into the pedal of whatever brake the car has, so the autopilot
+/// drives alike with every `[scenario.vehicle]` (and `actor bench` measures the same traffic).
+/// The cap keeps its crashes: a scripted driver that stopped at 15 m/s² would never hit
+/// anything, and without negotiating the junction it would jam it.
+const THROTTLE_PER_MPS: f32 = 0.5;
+const BRAKE_DECEL_PER_MPS: f32 = 3.0;
+const MAX_BRAKE_DECEL: f32 = 6.0;
 /// Bends are taken at the speed that keeps lateral acceleration at this (m/s²).
 const COMFORT_LATERAL_ACCEL: f32 = 3.0;
 
@@ -77,7 +85,12 @@ pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) 
         } else {
             target_speed_mps.min(bend_speed(scene.network(), route, car.lane_index))
         };
-        let throttle = (0.5 * (desired - car.kin.speed)).clamp(-1.0, 1.0);
+        let error = desired - car.kin.speed;
+        let throttle = if error >= 0.0 {
+            (THROTTLE_PER_MPS * error).min(1.0)
+        } else {
+            -car.kin.dynamics.brake_pedal((BRAKE_DECEL_PER_MPS * -error).min(MAX_BRAKE_DECEL))
+        };
         out[slot * ACTION_DIM] = steer;
         out[slot * ACTION_DIM + 1] = throttle;
     }

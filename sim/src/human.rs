@@ -107,7 +107,7 @@ pub fn drive(
     let throttle = if accel >= 0.0 {
         accel * MASS / MAX_ENGINE_FORCE
     } else {
-        accel / car.kin.dynamics.max_brake_decel
+        -car.kin.dynamics.brake_pedal(-accel)
     };
     [steer, throttle.clamp(-1.0, 1.0)]
 }

@@ -339,35 +339,44 @@ fn human_drivers_flow_through_the_junction_apart_from_the_agents() {
     // flow this test's shares were measured in.
     c.after_horizon = AfterHorizon::Reset;
     c.wreck_holds_slot = false;
-    let mut scene = Scene::new(&c, 7).unwrap();
-    assert_eq!(scene.slots(), 2);
-    assert_eq!(scene.vehicles().filter(|v| v.human).count(), 6);
-    let mut actions = vec![0.0; 2 * ACTION_DIM];
+    // Pooled over three scenes: one scene's share of arrivals swings by ± 0.05 with any change
+    // of the dynamics.
+    let seeds = [7, 8, 9];
     let mut outcomes: HashMap<Outcome, usize> = HashMap::new();
-    for _ in 0..3000 {
-        autopilot_actions(&scene, 8.0, &mut actions);
-        let result = scene.step(&actions).clone();
-        assert!(result.finished.iter().all(|e| e.slot < 2));
-        assert_eq!(result.rewards.len(), 2);
-        for e in &result.human_finished {
-            assert_eq!(e.total_reward, 0.0);
-            *outcomes.entry(e.outcome).or_default() += 1;
+    for seed in seeds {
+        let mut scene = Scene::new(&c, seed).unwrap();
+        assert_eq!(scene.slots(), 2);
+        assert_eq!(scene.vehicles().filter(|v| v.human).count(), 6);
+        let mut actions = vec![0.0; 2 * ACTION_DIM];
+        for _ in 0..3000 {
+            autopilot_actions(&scene, 8.0, &mut actions);
+            let result = scene.step(&actions).clone();
+            assert!(result.finished.iter().all(|e| e.slot < 2));
+            assert_eq!(result.rewards.len(), 2);
+            for e in &result.human_finished {
+                assert_eq!(e.total_reward, 0.0);
+                *outcomes.entry(e.outcome).or_default() += 1;
+            }
+            let (_, ids) = scene.neighbours();
+            assert!(
+                ids.iter().all(|&j| j < 2),
+                "human drivers are no one's neighbours"
+            );
         }
-        let (_, ids) = scene.neighbours();
-        assert!(
-            ids.iter().all(|&j| j < 2),
-            "human drivers are no one's neighbours"
-        );
     }
     // Timeouts come from the scene horizon (every 1000 steps), not from waiting.
     let count = |o: Outcome| outcomes.get(&o).copied().unwrap_or(0);
     let ended = outcomes.values().sum::<usize>() - count(Outcome::Timeout);
-    assert!(ended >= 40, "{outcomes:?}");
+    assert!(ended >= 40 * seeds.len(), "{outcomes:?}");
     assert!(
         count(Outcome::Success) as f64 >= 0.85 * ended as f64,
         "human drivers mostly arrive: {outcomes:?}"
     );
-    assert_eq!(count(Outcome::Timeout), 3 * 6, "only the horizon ends them");
+    assert_eq!(
+        count(Outcome::Timeout),
+        seeds.len() * 3 * 6,
+        "only the horizon ends them"
+    );
 }
 
 #[test]
@@ -410,7 +419,7 @@ fn respawn_keeps_the_flow_and_every_agent_ends_exactly_once() {
         assert!(alive_after <= 30);
         assert_eq!(spawned - ended, alive_after, "conservation at step {step}");
     }
-    assert!(ended > 60, "a real flow: {ended} episodes ended");
+    assert!(ended > 60, "a real flow: {ended} episodes ended, {outcomes:?}");
     assert!(
         outcomes.get(&Outcome::Success).copied().unwrap_or(0) > 10,
         "{outcomes:?}"

@@ -2,11 +2,13 @@
 //!
 //! Longitudinal model (also the basis of the energy cost, paper §3.5):
 //! `m·a = F_engine − F_brake − F_roll − F_drag` with
-//! `F_engine = throttle · 3300 N` (none at or above the top speed), `F_brake = brake · 6600 N`,
-//! `F_roll = 0.015 · m · g` and `F_drag = ½ · 1.225 · 0.30 · 2.2 · v²` (air density, drag
-//! coefficient, frontal area). Speed never goes below 0: no reverse. MetaDrive's Bullet
-//! "forces" (800 engine, 150 brake) are not Newtons on the chassis; ours are calibrated to
-//! 3 m/s² peak acceleration and 6 m/s² peak braking for its 1100 kg car.
+//! `F_engine = throttle · 3300 N` (none at or above the top speed),
+//! `F_brake = min(brake / brake_saturation, 1) · max_brake_decel · m` (by default 15 m/s² from
+//! three quarters of the pedal on), `F_roll = 0.015 · m · g` and
+//! `F_drag = ½ · 1.225 · 0.30 · 2.2 · v²` (air density, drag coefficient, frontal area). Speed
+//! never goes below 0: no reverse. MetaDrive's Bullet "forces" (800 engine, 150 brake) are not
+//! Newtons on the chassis; ours are calibrated to its 1100 kg car as measured in MetaDrive
+//! 0.4.3: 3 m/s² peak acceleration, braking that saturates at 15 m/s².
 //!
 //! Energy: the work of the engine force, `∫ F_engine · v dt`, in kJ. Regeneration is off:
 //! braking and coasting return nothing, and a car standing still uses nothing.
@@ -52,14 +54,23 @@ pub struct Dynamics {
 }
 
 impl Default for Dynamics {
-    /// The pure kinematic bicycle braking at 6 m/s².
+    /// The default car (`[scenario.vehicle]`'s defaults): the kinematic bicycle with MetaDrive's
+    /// measured brake, 15 m/s² from three quarters of the pedal on.
     fn default() -> Self {
         Dynamics {
             max_lateral_accel: 0.0,
-            max_brake_decel: 6.0,
-            brake_saturation: 1.0,
+            max_brake_decel: 15.0,
+            brake_saturation: 0.75,
             steering_time_constant: 0.0,
         }
+    }
+}
+
+impl Dynamics {
+    /// The brake pedal (a positive number, at most 1) that decelerates at `decel` m/s² by the
+    /// brakes alone: the inverse of the pedal-to-force curve in `Kinematics::acceleration`.
+    pub fn brake_pedal(&self, decel: f32) -> f32 {
+        (decel / self.max_brake_decel * self.brake_saturation).min(1.0)
     }
 }
 
@@ -323,8 +334,22 @@ mod tests {
             (decel(1.0, strong) - (15.0 + rest)).abs() < 0.01,
             "saturated"
         );
-        // The default is proportional over the whole pedal.
-        assert!((decel(0.3, Dynamics::default()) - (1.8 + rest)).abs() < 0.01);
+        let proportional = Dynamics {
+            max_brake_decel: 6.0,
+            brake_saturation: 1.0,
+            ..Dynamics::default()
+        };
+        assert!((decel(0.3, proportional) - (1.8 + rest)).abs() < 0.01);
+        // The default car brakes like MetaDrive's: 6 m/s² at a third of the pedal.
+        assert!((decel(0.3, Dynamics::default()) - (6.0 + rest)).abs() < 0.01);
+        // brake_pedal inverts the curve, so the human drivers' IDM gets the braking it asks for.
+        for dynamics in [strong, proportional, Dynamics::default()] {
+            for wanted in [0.5, 3.0, 6.0] {
+                let pedal = dynamics.brake_pedal(wanted);
+                assert!((decel(pedal, dynamics) - (wanted + rest)).abs() < 0.01);
+            }
+            assert_eq!(dynamics.brake_pedal(100.0), 1.0, "at most the full pedal");
+        }
     }
 
     #[test]

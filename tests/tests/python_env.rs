@@ -20,10 +20,11 @@ const OVERRIDES: &[&str] = &[
     "scenario.after_horizon=\"finish\"",
 ];
 
-/// The action of `slot` at step `t`: multiples of 1/8, exact in f32 on both sides.
+/// The action of `slot` at step `t`: multiples of 1/8, exact in f32 on both sides, braking
+/// one step in nine (the default car brakes hard: more and the cars never get anywhere).
 fn action(t: usize, slot: usize) -> [f32; 2] {
     let steer = ((t * 7 + slot * 3) % 17) as f32 - 8.0;
-    let throttle = ((t * 5 + slot) % 9) as f32 - 2.0;
+    let throttle = ((t * 5 + slot) % 9) as f32 - 1.0;
     [steer / 8.0, throttle / 8.0]
 }
 
@@ -39,7 +40,7 @@ obs, info = env.reset(seed=seed)
 t_idx = np.arange(steps)[:, None]
 slot_idx = np.arange(env.slots)[None, :]
 steer = ((t_idx * 7 + slot_idx * 3) % 17 - 8) / 8
-throttle = ((t_idx * 5 + slot_idx) % 9 - 2) / 8
+throttle = ((t_idx * 5 + slot_idx) % 9 - 1) / 8
 with open(out, "wb") as f:
     f.write(obs.tobytes()); f.write(info["alive"].tobytes())
     for t in range(steps):
