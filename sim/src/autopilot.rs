@@ -89,7 +89,9 @@ pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) 
         let throttle = if error >= 0.0 {
             (THROTTLE_PER_MPS * error).min(1.0)
         } else {
-            -car.kin.dynamics.brake_pedal((BRAKE_DECEL_PER_MPS * -error).min(MAX_BRAKE_DECEL))
+            -car.kin
+                .dynamics
+                .brake_pedal((BRAKE_DECEL_PER_MPS * -error).min(MAX_BRAKE_DECEL))
         };
         out[slot * ACTION_DIM] = steer;
         out[slot * ACTION_DIM + 1] = throttle;

@@ -419,7 +419,10 @@ fn respawn_keeps_the_flow_and_every_agent_ends_exactly_once() {
         assert!(alive_after <= 30);
         assert_eq!(spawned - ended, alive_after, "conservation at step {step}");
     }
-    assert!(ended > 60, "a real flow: {ended} episodes ended, {outcomes:?}");
+    assert!(
+        ended > 60,
+        "a real flow: {ended} episodes ended, {outcomes:?}"
+    );
     assert!(
         outcomes.get(&Outcome::Success).copied().unwrap_or(0) > 10,
         "{outcomes:?}"
