@@ -20,8 +20,8 @@ pub const CRUISE_SPEED_MPS: f32 = 10.0;
 /// The speed controller: throttle per m/s too slow, and deceleration (m/s²) per m/s too fast up
 /// to `MAX_BRAKE_DECEL`, turned into the pedal of whatever brake the car has, so the autopilot
 /// drives alike with every `[scenario.vehicle]` (and `actor bench` measures the same traffic).
-/// The cap keeps its crashes: a scripted driver that stopped at 15 m/s² would never hit
-/// anything, and without negotiating the junction it would jam it.
+/// The cap keeps its traffic moving: braking at up to 15 m/s² it stopped short of nearly
+/// everything and, not negotiating the junction, jammed it (a third of the episodes ended).
 const THROTTLE_PER_MPS: f32 = 0.5;
 const BRAKE_DECEL_PER_MPS: f32 = 3.0;
 const MAX_BRAKE_DECEL: f32 = 6.0;
