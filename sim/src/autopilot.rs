@@ -21,7 +21,7 @@ pub const CRUISE_SPEED_MPS: f32 = 10.0;
 /// to `MAX_BRAKE_DECEL`, turned into the pedal of whatever brake the car has, so the autopilot
 /// drives alike with every `[scenario.vehicle]` (and `actor bench` measures the same traffic).
 /// The cap keeps its traffic moving: braking at up to 15 m/s² it stopped short of nearly
-/// everything and, not negotiating the junction, jammed it (a third of the episodes ended).
+/// everything and, not negotiating the junction, jammed it: far fewer episodes ended.
 const THROTTLE_PER_MPS: f32 = 0.5;
 const BRAKE_DECEL_PER_MPS: f32 = 3.0;
 const MAX_BRAKE_DECEL: f32 = 6.0;
