@@ -35,6 +35,11 @@ impl Adam {
         self.learning_rate
     }
 
+    /// For schedules: the moments and step count carry on, only the step size changes.
+    pub fn set_learning_rate(&mut self, learning_rate: f64) {
+        self.learning_rate = learning_rate;
+    }
+
     pub fn zero_grad(&mut self) {
         for p in &mut self.params {
             let mut grad = p.grad();

@@ -268,6 +268,7 @@ impl Trainer {
             .map(|f| self.progress.version.abs_diff(f.behaviour_version))
             .collect();
         let started = Instant::now();
+        self.algorithm.set_progress(self.progress.agent_steps);
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
             Err(e) => {

@@ -85,6 +85,10 @@ impl Algorithm for Cl {
         self.ippo.policy_bytes(version)
     }
 
+    fn set_progress(&mut self, agent_steps: u64) {
+        self.ippo.set_progress(agent_steps);
+    }
+
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
         self.ippo.update(fragments)
     }

@@ -36,7 +36,7 @@ pub type Ippo = SharedPpo<OwnObservation>;
 mod tests {
     use crate::algo::Algorithm;
     use crate::algo::shared_ppo::testing::{ippo, one_step_fragment};
-    use junction_common::config::RunConfig;
+    use junction_common::config::{LrSchedule, RunConfig};
     use junction_common::fragment::RolloutFragment;
     use junction_common::policy::Policy;
     use junction_common::weights::{self, Decoded};
@@ -87,6 +87,24 @@ mod tests {
             (end - 0.5).abs() < 0.15 && (start - 0.5).abs() > 0.3,
             "mean action {start} → {end}"
         );
+    }
+
+    #[test]
+    fn the_learning_rate_follows_the_schedule_told_before_each_update() {
+        tch::manual_seed(2);
+        let mut run = RunConfig::default();
+        run.ppo.hidden = vec![8];
+        run.ppo.lr_schedule = LrSchedule::Linear;
+        run.run.max_agent_steps = 1000;
+        let mut algo = ippo(&run, 3, 2);
+        let mut rates = Vec::new();
+        for consumed in [0, 250, 1000] {
+            algo.set_progress(consumed);
+            let fragment = bandit_fragment(algo.policy(), 0);
+            rates.push(algo.update(&[fragment]).unwrap().learning_rate);
+        }
+        let base = run.ppo.learning_rate;
+        assert_eq!(rates, vec![base, 0.75 * base, 0.0]);
     }
 
     #[test]

@@ -107,6 +107,10 @@ pub trait Algorithm {
     fn refusal(&self, _fragment: &RolloutFragment) -> Option<&'static str> {
         None
     }
+    /// How far the run has come (agent-steps consumed), told before every update, for
+    /// schedules that follow it (PPO's `ppo.lr_schedule`). A resumed run restores the count,
+    /// so its schedule continues where it was.
+    fn set_progress(&mut self, _agent_steps: u64) {}
     /// One update on a batch of fragments.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;
     /// Everything besides the policy needed to resume exactly (critics, optimiser state).

@@ -65,6 +65,8 @@ pub struct SharedPpo<C> {
     adam: Adam,
     /// The KL penalty's current coefficient (0: no penalty).
     kl_coef: f64,
+    /// run.max_agent_steps, what `ppo.lr_schedule` anneals over.
+    agent_step_budget: u64,
     seed: u64,
     updates: u64,
 }
@@ -127,6 +129,7 @@ impl<C: CriticInput> SharedPpo<C> {
             critics,
             adam,
             kl_coef: config.kl_coef,
+            agent_step_budget: run.run.max_agent_steps,
             seed: run.run.seed,
             updates: 0,
         }
@@ -153,6 +156,15 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
     fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
         self.policy
             .to_bytes_with_metadata(version, self.coordination.policy_metadata())
+    }
+
+    fn set_progress(&mut self, agent_steps: u64) {
+        let c = &self.config;
+        self.adam.set_learning_rate(c.lr_schedule.learning_rate(
+            c.learning_rate,
+            agent_steps,
+            self.agent_step_budget,
+        ));
     }
 
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
