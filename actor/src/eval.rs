@@ -1,4 +1,5 @@
-//! `actor eval`: a trained policy drives every agent with its mean action in scenes seeded
+//! `actor eval`: a trained policy drives every agent with its mean action (or, asked to, with
+//! actions drawn from its distribution as in training) in scenes seeded
 //! apart from training's, until enough agent episodes have finished; the episodes are
 //! aggregated into the paper's metrics with 95 % intervals (`junction_common::evaluation`).
 //!
@@ -11,9 +12,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use rand::{RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use junction_common::config::ScenarioConfig;
-use junction_common::evaluation::{EvalTally, TrainingInfo};
+use junction_common::evaluation::{EvalActions, EvalTally, TrainingInfo};
 use junction_common::spec::ACTION_DIM;
 
 use crate::replay::Driver;
@@ -22,6 +25,8 @@ use junction_sim::Scene;
 
 /// Tags the evaluation's seed stream ("EVAL"); training streams are actor-id byte sums.
 pub const EVAL_SEED_STREAM: u64 = 0x4556_414C_0000_0000;
+/// Tags the stream sampled actions are drawn from ("EVALACT"), apart from the scenes'.
+const ACTION_SEED_STREAM: u64 = 0x4556_414C_4143_5400;
 
 /// The seed of evaluation scene `scene` for evaluation seed `seed`.
 pub fn scene_seed(seed: u64, scene: usize) -> u64 {
@@ -35,6 +40,8 @@ pub struct EvalOptions {
     pub episodes: u64,
     /// Scenes stepped side by side (more scenes, more varied starts).
     pub scenes: usize,
+    /// The mean action, or draws seeded from `seed` (the same seed, the same draws).
+    pub actions: EvalActions,
 }
 
 /// Steps `options.scenes` scenes in rounds (each scene one step per round) until the scene
@@ -63,9 +70,20 @@ pub fn run(
     let mut running = vec![EvalTally::default(); scenes.len()];
     let dt = f64::from(scenario.decision_dt);
     let mut tally = EvalTally::default();
+    let mut explore = match options.actions {
+        EvalActions::Mean => None,
+        EvalActions::Sample => Some(ChaCha8Rng::seed_from_u64(derive_seed(
+            options.seed,
+            ACTION_SEED_STREAM,
+        ))),
+    };
     while (tally.episodes.len() as u64) < options.episodes {
         for ((scene, actions), current) in scenes.iter_mut().zip(&mut actions).zip(&mut running) {
-            driver.actions(scene, actions)?;
+            driver.actions(
+                scene,
+                actions,
+                explore.as_mut().map(|rng| rng as &mut dyn RngCore),
+            )?;
             let result = scene.step(actions);
             current.scene_steps += 1;
             for finished in &result.finished {
@@ -176,6 +194,7 @@ mod tests {
             seed: 5,
             episodes: 12,
             scenes: 2,
+            actions: EvalActions::Mean,
         };
         let mut finished_by_round = Vec::new();
         let tally = run(&scenario, &driver, &options, |t| {

@@ -16,7 +16,7 @@ use junction_actor::video::VideoWriter;
 use junction_actor::{bench, eval, grpc, shm};
 use junction_common::auth::Token;
 use junction_common::config::{AfterHorizon, ScenarioConfig};
-use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
+use junction_common::evaluation::{EVAL_FORMAT, EvalActions, EvalReport};
 use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 
@@ -46,7 +46,8 @@ enum Command {
     /// cars left on the road (dark red), and brief rings where cars arrive (green), crash
     /// (orange) or leave the road (magenta).
     Render(RenderArgs),
-    /// Evaluate a trained policy: every agent takes the policy's mean action, in scenes seeded
+    /// Evaluate a trained policy: every agent takes the policy's mean action (or a sampled
+    /// one with --actions sample), in scenes seeded
     /// apart from training's, until N agent episodes have finished. Prints the paper's metrics
     /// (§4.2) and CoPO's with 95 % confidence intervals, and writes them to
     /// OUT/eval-<scenario>-seed<S>.json and .csv.
@@ -199,6 +200,12 @@ struct EvalArgs {
     /// whole scene episodes are counted either way.
     #[arg(long, value_name = "MODE", default_value = "finish", value_parser = parse_after_horizon)]
     after_horizon: AfterHorizon,
+    /// How agents act: mean (the policy's deterministic action, what a deployed policy does)
+    /// or sample (drawn from its distribution as in training, seeded from --seed, so the
+    /// figures compare with training-curve success such as CoPO's; a CoPO policy still sees
+    /// its distribution's mean angle). Sampled results go to eval-<scenario>-seed<S>-sample.*
+    #[arg(long, value_name = "MODE", default_value = "mean", value_parser = parse_eval_actions)]
+    actions: EvalActions,
     /// Directory for the JSON and CSV [default: <run>/eval for a checkpoint inside a run
     /// directory, else ./eval].
     #[arg(long, value_name = "DIR")]
@@ -209,6 +216,14 @@ struct EvalArgs {
     /// Threads libtorch may use for inference.
     #[arg(long, default_value_t = 1)]
     torch_threads: i32,
+}
+
+fn parse_eval_actions(text: &str) -> Result<EvalActions, String> {
+    match text {
+        "mean" => Ok(EvalActions::Mean),
+        "sample" => Ok(EvalActions::Sample),
+        other => Err(format!("{other:?} is not mean or sample")),
+    }
 }
 
 fn parse_after_horizon(text: &str) -> Result<AfterHorizon, String> {
@@ -341,12 +356,17 @@ fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
         scenario = %scenario.name,
         episodes = args.episodes,
         seed = args.seed,
-        "evaluating the policy's mean action"
+        actions = match args.actions {
+            EvalActions::Mean => "the policy's mean",
+            EvalActions::Sample => "sampled",
+        },
+        "evaluating the policy"
     );
     let options = eval::EvalOptions {
         seed: args.seed,
         episodes: args.episodes,
         scenes: args.scenes as usize,
+        actions: args.actions,
     };
     let started = Instant::now();
     let mut last_report = started;
@@ -383,13 +403,18 @@ fn evaluate(args: EvalArgs) -> anyhow::Result<()> {
         collisions: tally.collisions,
         scene_episodes: tally.scene_episodes.len() as u64,
         after_horizon: Some(args.after_horizon),
+        actions: args.actions,
         metrics: tally.metrics(args.seed),
         wall_s: started.elapsed().as_secs_f64(),
     };
     let stem = out_dir.join(format!(
-        "eval-{}-seed{}",
+        "eval-{}-seed{}{}",
         eval::file_safe(&scenario.name),
-        args.seed
+        args.seed,
+        match args.actions {
+            EvalActions::Mean => "",
+            EvalActions::Sample => "-sample",
+        }
     ));
     let json_path = stem.with_extension("json");
     let csv_path = stem.with_extension("csv");

@@ -9,6 +9,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail, ensure};
+use rand::RngCore;
 
 use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
@@ -48,8 +49,15 @@ pub struct PolicyDriver {
 }
 
 impl Driver {
-    /// Fills `out` with `[steer, throttle_brake]` for every slot (zeros for empty ones).
-    pub fn actions(&self, scene: &Scene, out: &mut [f32]) -> anyhow::Result<()> {
+    /// Fills `out` with `[steer, throttle_brake]` for every slot (zeros for empty ones): a
+    /// policy's deterministic action, or, given `explore`, a draw from its distribution (as
+    /// actors act in training) with every random choice taken from `explore`.
+    pub fn actions(
+        &self,
+        scene: &Scene,
+        out: &mut [f32],
+        explore: Option<&mut dyn RngCore>,
+    ) -> anyhow::Result<()> {
         let policy = match self {
             Driver::Autopilot => {
                 autopilot_actions(scene, CRUISE_SPEED_MPS, out);
@@ -69,10 +77,14 @@ impl Driver {
             batch.extend_from_slice(&scene.observations()[slot * obs_dim..(slot + 1) * obs_dim]);
             batch.extend(phi);
         }
-        let actions = policy
-            .policy
-            .deterministic(&batch)
-            .context("policy inference")?;
+        let actions = match explore {
+            Some(rng) => policy
+                .policy
+                .sample(&batch, rng)
+                .map(|(actions, _)| actions),
+            None => policy.policy.deterministic(&batch),
+        }
+        .context("policy inference")?;
         for (row, &slot) in slots.iter().enumerate() {
             out[slot * ACTION_DIM..(slot + 1) * ACTION_DIM]
                 .copy_from_slice(&actions[row * ACTION_DIM..(row + 1) * ACTION_DIM]);
@@ -230,7 +242,7 @@ pub fn run(
         if step == options.steps {
             break;
         }
-        driver.actions(&scene, &mut actions)?;
+        driver.actions(&scene, &mut actions, None)?;
         let result = scene.step(&actions);
         for episode in &result.finished {
             *summary
@@ -452,7 +464,7 @@ mod tests {
         let scene = Scene::new(&scenario, 1).unwrap();
         let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
         Driver::Policy(driver)
-            .actions(&scene, &mut actions)
+            .actions(&scene, &mut actions, None)
             .unwrap();
         // The slot's scene observation with φ = μ appended: (30/90 + 1)/2.
         let mut row = scene.observations()[..scene.obs_dim()].to_vec();
@@ -508,7 +520,7 @@ mod tests {
         let driver = Driver::Policy(load_policy(&blob, &scenario).unwrap().0);
         let scene = Scene::new(&scenario, 1).unwrap();
         let mut actions = vec![0.0; scene.slots() * ACTION_DIM];
-        driver.actions(&scene, &mut actions).unwrap();
+        driver.actions(&scene, &mut actions, None).unwrap();
         let obs = &scene.observations()[..scene.obs_dim()];
         assert_eq!(
             &actions[..ACTION_DIM],

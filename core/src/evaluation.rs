@@ -221,7 +221,20 @@ pub struct TrainingInfo {
     pub agent_steps: Option<u64>,
 }
 
-/// The file `actor eval` writes (`<out>/eval-<scenario>-seed<S>.json`).
+/// How an evaluated policy chooses its actions.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EvalActions {
+    /// The deterministic action (a Gaussian's mean): what a deployed policy does.
+    #[default]
+    Mean,
+    /// Drawn from the policy's distribution, as in training (RLlib's `explore = True`), so
+    /// the figures compare with training-curve success such as CoPO's.
+    Sample,
+}
+
+/// The file `actor eval` writes (`<out>/eval-<scenario>-seed<S>.json`, with `-sample` before
+/// the extension for sampled actions).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvalReport {
     pub format: String,
@@ -245,6 +258,9 @@ pub struct EvalReport {
     pub scene_episodes: u64,
     #[serde(default)]
     pub after_horizon: Option<crate::config::AfterHorizon>,
+    /// Absent from evaluations made before actions could be sampled: those took the mean.
+    #[serde(default)]
+    pub actions: EvalActions,
     pub metrics: EvalMetrics,
     /// Agent episodes by where and how they ended (`outcome/stage`, crashes
     /// `crash/stage/kind`: docs/EVALUATION.md); absent where the simulator does not say.
@@ -299,7 +315,7 @@ impl EvalReport {
             .join(", ");
         let mut out = format!(
             "policy  {} (v{}{}{})\neval    {}, seed {}, {} scenes: {} episodes ({outcomes}) in {} \
-             scene episodes, {} scene steps ({:.0} s simulated){}\n\n",
+             scene episodes, {} scene steps ({:.0} s simulated){}\n{}\n",
             self.policy,
             self.policy_version,
             if trained.is_empty() { "" } else { ": " },
@@ -315,6 +331,10 @@ impl EvalReport {
                 Some(crate::config::AfterHorizon::Finish) => ", agents finish after the horizon",
                 Some(crate::config::AfterHorizon::Reset) => ", agents cut off at the horizon",
                 None => "",
+            },
+            match self.actions {
+                EvalActions::Mean => "",
+                EvalActions::Sample => "actions sampled from the policy's distribution\n",
             },
         );
         out.push_str(&format!(
@@ -519,6 +539,7 @@ mod tests {
             collisions: 2,
             scene_episodes: 2,
             after_horizon: Some(crate::config::AfterHorizon::Finish),
+            actions: EvalActions::Mean,
             metrics: m,
             wall_s: 0.5,
         };

@@ -13,7 +13,7 @@ use pyo3::types::PyDict;
 
 use junction_core::config::{ConfigError as RustConfigError, Layer, RunConfig, ScenarioConfig};
 use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
-use junction_core::evaluation::{EVAL_FORMAT, EvalReport, EvalTally, TrainingInfo};
+use junction_core::evaluation::{EVAL_FORMAT, EvalActions, EvalReport, EvalTally, TrainingInfo};
 use junction_core::lcf_inputs::{self, Motion};
 use junction_core::scenarios;
 use junction_core::spec::ACTION_DIM;
@@ -616,6 +616,7 @@ fn eval_report(
         collisions: tally.collisions,
         scene_episodes: tally.scene_episodes.len() as u64,
         after_horizon,
+        actions: EvalActions::Mean,
         metrics: tally.metrics(seed),
         wall_s: meta["wall_s"]
             .as_f64()

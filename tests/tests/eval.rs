@@ -171,3 +171,48 @@ fn a_bare_policy_file_needs_a_scenario() {
     let report = read_json(&dir.path().join("out/eval-tiny-straight-seed1.json"));
     assert_eq!(report["training"]["algorithm"], serde_json::Value::Null);
 }
+
+#[test]
+fn sampled_actions_repeat_with_the_seed_and_are_not_the_mean() {
+    let dir = TempDir::new("eval-sample");
+    let run = checkpoint(dir.path());
+    let run_arg = run.display().to_string();
+    let sampled = |out: &str| {
+        let out = dir.path().join(out).display().to_string();
+        let args = ["--checkpoint", &run_arg, "--episodes", "6", "--seed", "3"];
+        let output = eval(&[&args[..], &["--actions", "sample", "--out", &out]].concat());
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        assert!(
+            String::from_utf8_lossy(&output.stdout).contains("actions sampled"),
+            "the table says how the agents acted"
+        );
+        let mut report = read_json(&Path::new(&out).join("eval-tiny-straight-seed3-sample.json"));
+        report["wall_s"] = 0.into();
+        report
+    };
+    let first = sampled("a");
+    assert_eq!(first["actions"], "sample");
+    assert_eq!(sampled("b"), first, "the same seed draws the same actions");
+
+    let mean = eval(&["--checkpoint", &run_arg, "--episodes", "6", "--seed", "3"]);
+    assert!(mean.status.success());
+    let mean = read_json(&run.join("eval/eval-tiny-straight-seed3.json"));
+    assert_eq!(mean["actions"], "mean");
+    // The fresh policy's std is 1: its draws drive differently from its mean.
+    assert_ne!(
+        first["metrics"]["reward_mean"]["value"], mean["metrics"]["reward_mean"]["value"],
+        "sampled and mean actions gave the same rewards"
+    );
+
+    let refused = eval(&["--checkpoint", &run_arg, "--actions", "greedy"]);
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("is not mean or sample"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+}

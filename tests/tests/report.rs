@@ -1,6 +1,7 @@
 //! `learner report` on the fixed runs in tests/fixtures/report-runs (2 methods × 2 scenes × 2
-//! seeds, evaluations for the intersection runs only, one unreadable run, one run with a
-//! line cut short): the table's numbers, the sources, and figures that are real pictures.
+//! seeds, evaluations for the intersection runs only, one sampled-action evaluation beside
+//! ippo s1's that the tables must leave out, one unreadable run, one run with a line cut
+//! short): the table's numbers, the sources, and figures that are real pictures.
 
 use std::path::Path;
 use std::process::Command;
@@ -65,7 +66,8 @@ fn table_numbers_come_from_evaluations_else_the_last_training_window() {
     let dir = TempDir::new("report");
     let (markdown, summary) = report(dir.path());
 
-    // Intersection: every seed was evaluated. Success 0.6 / 0.8 (ippo) and 0.7 / 0.9 (cl):
+    // Intersection: every seed was evaluated (ippo s1's sampled evaluation, success 0, is not
+    // counted). Success 0.6 / 0.8 (ippo) and 0.7 / 0.9 (cl):
     // means 0.7 and 0.8, half-width t(1)·s/√2 = 12.7062 · 0.1 = 1.271; cl is better.
     assert_eq!(
         row(&markdown, "intersection", "Success rate"),

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use junction_common::evaluation::{EVAL_FORMAT, EvalReport};
+use junction_common::evaluation::{EVAL_FORMAT, EvalActions, EvalReport};
 
 use crate::progress::ProgressLine;
 
@@ -163,7 +163,9 @@ fn config_str(config: &Option<toml::Table>, section: &str, key: &str) -> Option<
         .map(str::to_string)
 }
 
-/// Every `eval/*.json` of this scene's scenario, by file name; other scenarios are left out.
+/// Every `eval/*.json` of this scene's scenario that took the policy's mean action, by file
+/// name: other scenarios are left out, and so are sampled-action evaluations (`actor eval
+/// --actions sample`), which would blend two policies' behaviour in one cell.
 fn read_evals(dir: &Path, scene: &str) -> anyhow::Result<Vec<EvalReport>> {
     if !dir.is_dir() {
         return Ok(Vec::new());
@@ -187,7 +189,7 @@ fn read_evals(dir: &Path, scene: &str) -> anyhow::Result<Vec<EvalReport>> {
             file.display(),
             report.format
         );
-        if report.scenario == scene {
+        if report.scenario == scene && report.actions == EvalActions::Mean {
             evals.push(report);
         }
     }
