@@ -18,6 +18,9 @@
 #   MAX_RUN_SECONDS  wall-clock cap per run [3600]
 #   EVAL_EPISODES    agent episodes per evaluation [1000]
 #   EVAL_SEED        evaluation seed: a validation seed, not the one final results use [777]
+#   EVAL_SAMPLED     1: evaluate with sampled actions as well as the mean action (`actor eval
+#                    --actions sample`, written beside it as eval-<scenario>-seed<S>-sample.*;
+#                    the report tables the mean action's) [1]
 #   SCENARIO         scenario name or file [intersection]
 #   BIN              binaries [target/release]
 #   FROM             a runs directory of an earlier ablation with the same arm names: each run
@@ -35,6 +38,7 @@ ACTORS=${ACTORS:-2}
 MAX_RUN_SECONDS=${MAX_RUN_SECONDS:-3600}
 EVAL_EPISODES=${EVAL_EPISODES:-1000}
 EVAL_SEED=${EVAL_SEED:-777}
+EVAL_SAMPLED=${EVAL_SAMPLED:-1}
 SCENARIO=${SCENARIO:-intersection}
 FROM=${FROM:-}
 
@@ -90,11 +94,18 @@ for seed in $SEEDS; do
             say "$name seed $seed: training failed (exit $status, $run_dir/train.log)"
             continue
         fi
-        say "$name seed $seed: evaluating"
-        if ! nice "$BIN/actor" eval --checkpoint "$run_dir" --episodes "$EVAL_EPISODES" \
-            --seed "$EVAL_SEED" --scenes 4 --out "$run_dir/eval" >"$run_dir/eval.log" 2>&1; then
-            say "$name seed $seed: evaluation failed ($run_dir/eval.log)"
-        fi
+        modes=mean
+        [ "$EVAL_SAMPLED" = 1 ] && modes="mean sample"
+        for actions in $modes; do
+            log="$run_dir/eval.log"
+            [ "$actions" = mean ] || log="$run_dir/eval-$actions.log"
+            say "$name seed $seed: evaluating ($actions actions)"
+            if ! nice "$BIN/actor" eval --checkpoint "$run_dir" --episodes "$EVAL_EPISODES" \
+                --seed "$EVAL_SEED" --scenes 4 --actions "$actions" --out "$run_dir/eval" \
+                >"$log" 2>&1; then
+                say "$name seed $seed: evaluation with $actions actions failed ($log)"
+            fi
+        done
     done
 done
 say "report"

@@ -17,6 +17,9 @@
 #   EVAL_EPISODES    agent episodes per evaluation [1000]
 #   EVAL_SEED        evaluation seed (held out from training's seeds) [1000]
 #   EVAL_SCENES      scenes per evaluation [4]
+#   EVAL_SAMPLED     1: evaluate with sampled actions as well as the mean action (`actor eval
+#                    --actions sample`, eval-<scenario>-seed<S>-sample.*, log eval-sample.log;
+#                    the report tables the mean action's) [1]
 #   SUCCESS          success rate of the time-to-success table [0.8]
 #   LEARNER_FLAGS    extra `learner serve` flags for every run, e.g. "--set ppo.learning_rate=1e-4"
 #   FLAGS_<method>   extra flags for one method's runs, "-" in its name written "_"
@@ -44,6 +47,7 @@ PROGRESS_S=${PROGRESS_S:-5}
 EVAL_EPISODES=${EVAL_EPISODES:-1000}
 EVAL_SEED=${EVAL_SEED:-1000}
 EVAL_SCENES=${EVAL_SCENES:-4}
+EVAL_SAMPLED=${EVAL_SAMPLED:-1}
 SUCCESS=${SUCCESS:-0.8}
 LEARNER_FLAGS=${LEARNER_FLAGS:-}
 OUT=${OUT:-results/grid-$(date +%Y%m%d-%H%M%S)}
@@ -172,10 +176,16 @@ for entry in "${runs[@]}"; do
     eval_s=""
     if [ "$train_status" -eq 0 ] && [ "$interrupted" = 0 ]; then
         eval_start=$(date +%s)
-        if ! "$BIN/actor" eval --checkpoint "$run_dir" --episodes "$EVAL_EPISODES" \
-            --seed "$EVAL_SEED" --scenes "$EVAL_SCENES" >"$run_dir/eval.log" 2>&1; then
-            status="$status; eval failed (see $run_dir/eval.log)"
-        fi
+        modes=mean
+        [ "$EVAL_SAMPLED" = 1 ] && modes="mean sample"
+        for actions in $modes; do
+            log="$run_dir/eval.log"
+            [ "$actions" = mean ] || log="$run_dir/eval-$actions.log"
+            if ! "$BIN/actor" eval --checkpoint "$run_dir" --episodes "$EVAL_EPISODES" \
+                --seed "$EVAL_SEED" --scenes "$EVAL_SCENES" --actions "$actions" >"$log" 2>&1; then
+                status="$status; eval with $actions actions failed (see $log)"
+            fi
+        done
         eval_s=$(($(date +%s) - eval_start))
         good_runs+=("$run_dir")
     fi
@@ -206,12 +216,12 @@ fi
     echo
     echo '```sh'
     echo "BUDGET=$BUDGET METHODS=\"$METHODS\" SCENES=\"$SCENES\" SEEDS=\"$SEEDS\" ACTORS=$ACTORS \\"
-    echo "  EVAL_EPISODES=$EVAL_EPISODES EVAL_SEED=$EVAL_SEED EVAL_SCENES=$EVAL_SCENES MAX_RUN_SECONDS=$MAX_RUN_SECONDS \\"
+    echo "  EVAL_EPISODES=$EVAL_EPISODES EVAL_SEED=$EVAL_SEED EVAL_SCENES=$EVAL_SCENES EVAL_SAMPLED=$EVAL_SAMPLED MAX_RUN_SECONDS=$MAX_RUN_SECONDS \\"
     echo "  PROGRESS_S=$PROGRESS_S SUCCESS=$SUCCESS LEARNER_FLAGS=\"$LEARNER_FLAGS\" scripts/experiments.sh"
     echo '```'
     echo
     echo "- Budget: $BUDGET agent-steps per run; $ACTORS local actors per run (\`learner serve --local-actors\`, shared memory), learner on the CPU."
-    echo "- Training seeds (\`run.seed\`): $SEEDS. Evaluation: \`actor eval\` of each final checkpoint, $EVAL_EPISODES agent episodes, seed $EVAL_SEED, $EVAL_SCENES scenes (held-out traffic)."
+    echo "- Training seeds (\`run.seed\`): $SEEDS. Evaluation: \`actor eval\` of each final checkpoint, $EVAL_EPISODES agent episodes, seed $EVAL_SEED, $EVAL_SCENES scenes (held-out traffic), with the mean action$([ "$EVAL_SAMPLED" = 1 ] && echo " and with sampled actions (\`--actions sample\`, beside it as \`eval-*-sample.json\`; the tables are the mean action's)")."
     echo "- Methods: ${available[*]:-none}."
     for method in "${available[@]}"; do
         flags=$(method_flags "$method")
