@@ -55,7 +55,8 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     // EVAL_SAMPLED defaults to 1: the sampled-action evaluation sits beside the mean one.
     let sampled = std::fs::read_to_string(run.join("eval/eval-tiny-straight-seed1000-sample.json"))
         .expect("the sampled-action evaluation was written");
-    assert!(sampled.contains("\"actions\": \"sample\""), "{sampled}");
+    let sampled: serde_json::Value = serde_json::from_str(&sampled).unwrap();
+    assert_eq!(sampled["actions"], "sample", "{sampled}");
     let grid_tsv = std::fs::read_to_string(out.join("grid.tsv")).unwrap();
     let row: Vec<&str> = grid_tsv.lines().nth(1).unwrap().split('\t').collect();
     assert_eq!(row[..4], ["ippo", "tiny-straight", "4", "ok"], "{grid_tsv}");
