@@ -477,6 +477,8 @@ pub struct CopoConfig {
     pub lcf_lr: f64,
     /// Passes over the batch's minibatches of the meta-gradient after each PPO update.
     pub meta_iterations: usize,
+    /// Estimate the meta-gradient's two factors from different fragments of the batch.
+    pub meta_cross_fit: bool,
 }
 
 /// The paper's dynamic LCF φ = f_ψ(S_N) (`learner.algo = "dynamic-lcf"`).
@@ -489,6 +491,8 @@ pub struct DynamicLcfConfig {
     pub lcf_lr: f64,
     /// Passes over the batch's minibatches of the meta-gradient after each PPO update.
     pub meta_iterations: usize,
+    /// Estimate the meta-gradient's two factors from different fragments of the batch.
+    pub meta_cross_fit: bool,
     /// Bound of φ, degrees: φ = max_phi_deg · tanh(f_ψ).
     pub max_phi_deg: f32,
     /// Largest mean change of φ over a batch per update, degrees (0 = unpaced).

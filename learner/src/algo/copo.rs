@@ -83,6 +83,7 @@ pub struct CopoLcf {
     params: Tensor,
     adam: Adam,
     iterations: usize,
+    cross_fit: bool,
 }
 
 impl CopoLcf {
@@ -98,6 +99,7 @@ impl CopoLcf {
             adam: Adam::new(vec![params.shallow_clone()], config.lcf_lr, META_ADAM_EPS),
             params,
             iterations: config.meta_iterations,
+            cross_fit: config.meta_cross_fit,
         }
     }
 
@@ -162,6 +164,7 @@ impl Coordination for CopoLcf {
             &batch.heads[GLOBAL].advantages,
             step.ppo.clip,
             step.ppo.minibatch_size,
+            &meta_lcf::segments(step.fragments, self.cross_fit),
         )?;
         let phi = phi_of_rows(batch);
         let individual = &batch.heads[INDIVIDUAL].advantages;

@@ -79,6 +79,7 @@ pub struct DynamicLcf {
     alpha: f32,
     beta: f32,
     iterations: usize,
+    cross_fit: bool,
     max_phi_deg: f64,
     /// Largest mean |Δφ| over a batch per update, degrees (0: unpaced).
     max_phi_step_deg: f64,
@@ -102,6 +103,7 @@ impl DynamicLcf {
             alpha: lcf.alpha,
             beta: lcf.beta,
             iterations: config.meta_iterations,
+            cross_fit: config.meta_cross_fit,
             max_phi_deg: f64::from(config.max_phi_deg),
             max_phi_step_deg: f64::from(config.max_phi_step_deg),
         }
@@ -193,6 +195,7 @@ impl Coordination for DynamicLcf {
             &batch.heads[GLOBAL].advantages,
             step.ppo.clip,
             step.ppo.minibatch_size,
+            &meta_lcf::segments(step.fragments, self.cross_fit),
         )?;
         let c = Vec::<f32>::try_from(c.to_device(Device::Cpu))?;
         // Each reward's weight w_j in mean_k[c_k·A_C,k], and the rows' r_i and r_N.

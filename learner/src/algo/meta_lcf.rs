@@ -13,6 +13,14 @@
 //!     Adam ascent step on ψ along ∇ψ mean_{k∈mb}[c_k·A_C,k(ψ)] / s
 //! ```
 //!
+//! Cross-fitting (`meta_cross_fit`): ∇ψ J_G is the product of two gradients of expectations,
+//! g and ∇θ of the inner objective. Estimated from the same rows, it carries each row's own
+//! term Â_G,k·A_C,k·|∇θ log π_k|², a covariance of the two advantages rather than a gradient:
+//! the scene's mean reward and the neighbourhood's covary through everything the scene shares,
+//! whatever the action, so that term pulls φ towards the neighbourhood. Cross-fitted, the
+//! batch's fragments (each one scene's window) alternate between two folds and c_k takes g
+//! from the other fold, so no row meets its own advantage twice.
+//!
 //! η only scales the gradient, which Adam does not see, so it is left out; s, the batch's
 //! standard deviation of A_C (a constant), makes the step follow the standardised advantage
 //! the PPO loss used, as CoPO does. CoPO multiplies batch means (g·mean_k ∇θ log π_k times
@@ -21,6 +29,7 @@
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Tensor};
 
+use junction_common::fragment::RolloutFragment;
 use junction_common::policy::{GaussianPolicy, gaussian_log_prob};
 
 use super::AlgoError;
@@ -57,9 +66,63 @@ pub fn log_prob_jvp(
     Ok(c.remove(0).detach())
 }
 
+/// Consecutive batch rows that take the global objective's gradient g from the same fold.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Segment {
+    pub start: usize,
+    pub len: usize,
+    pub fold: usize,
+}
+
+/// The batch's rows (alive cells of `fragments`, in order) as segments: one segment of fold 0
+/// estimated from the same rows, or, cross-fitted, one per fragment with folds alternating
+/// (a batch of one fragment is split into its earlier and later steps).
+pub fn segments(fragments: &[RolloutFragment], cross_fit: bool) -> Vec<Segment> {
+    let lens: Vec<usize> = fragments
+        .iter()
+        .map(|f| f.alive.iter().filter(|&&a| a).count())
+        .filter(|&len| len > 0)
+        .collect();
+    let total: usize = lens.iter().sum();
+    let whole = Segment {
+        start: 0,
+        len: total,
+        fold: 0,
+    };
+    if !cross_fit || total < 2 {
+        return vec![whole];
+    }
+    if lens.len() == 1 {
+        let half = total / 2;
+        return vec![
+            Segment { len: half, ..whole },
+            Segment {
+                start: half,
+                len: total - half,
+                fold: 1,
+            },
+        ];
+    }
+    let mut start = 0;
+    lens.iter()
+        .enumerate()
+        .map(|(i, &len)| {
+            let segment = Segment {
+                start,
+                len,
+                fold: i % 2,
+            };
+            start += len;
+            segment
+        })
+        .collect()
+}
+
 /// c_k for every row of `batch`: the policy `before` the update, the policy `after` it, the
-/// batch's global advantages (standardised here over the whole batch). Rows are taken `chunk`
-/// at a time to bound the memory of the double backward.
+/// batch's global advantages (standardised here over the whole batch), the rows' `segments`
+/// (in row order, covering the batch; [`segments`]): g is the mean over a fold's rows, and a
+/// row's c_k takes it from the other of two folds, or from its own where there is one. Rows are taken `chunk` at
+/// a time to bound the memory of the double backward.
 pub fn sensitivities(
     before: &GaussianPolicy,
     after: &GaussianPolicy,
@@ -67,43 +130,65 @@ pub fn sensitivities(
     global_advantages: &Tensor,
     clip: f64,
     chunk: usize,
+    segments: &[Segment],
 ) -> Result<Tensor, AlgoError> {
-    let n = batch.len as i64;
-    let chunk = chunk.max(1) as i64;
-    let starts: Vec<i64> = (0..n).step_by(chunk as usize).collect();
-    let rows = |t: &Tensor, start: i64| t.narrow(0, start, chunk.min(n - start));
+    let chunk = chunk.max(1);
+    let chunks = |segment: Segment| {
+        (segment.start..segment.start + segment.len)
+            .step_by(chunk)
+            .map(move |start| {
+                (
+                    start as i64,
+                    chunk.min(segment.start + segment.len - start) as i64,
+                )
+            })
+    };
     let global = standardize(global_advantages);
+    let folds = segments.iter().map(|s| s.fold + 1).max().unwrap_or(0);
+    let mut fold_rows = vec![0usize; folds];
+    for segment in segments {
+        fold_rows[segment.fold] += segment.len;
+    }
 
     let params_after = after.trainable();
-    let mut g: Vec<Tensor> = params_after.iter().map(Tensor::zeros_like).collect();
-    for &start in &starts {
-        let obs = after.normalize(&rows(&batch.obs, start));
-        let (mean, log_std) = after.distribution(&obs);
-        let log_probs = gaussian_log_prob(&mean, &log_std, &rows(&batch.actions, start));
-        let share = chunk.min(n - start) as f64 / n as f64;
-        let objective = -clipped_surrogate(
-            &log_probs,
-            &rows(&batch.old_log_probs, start),
-            &rows(&global, start),
-            clip,
-        )
-        .loss
-            * share;
-        for (total, part) in g
-            .iter_mut()
-            .zip(objective_gradient(&objective, &params_after)?)
-        {
-            *total += part;
+    let mut g: Vec<Vec<Tensor>> = (0..folds)
+        .map(|_| params_after.iter().map(Tensor::zeros_like).collect())
+        .collect();
+    for segment in segments {
+        for (start, len) in chunks(*segment) {
+            let obs = after.normalize(&batch.obs.narrow(0, start, len));
+            let (mean, log_std) = after.distribution(&obs);
+            let log_probs =
+                gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len));
+            let share = len as f64 / fold_rows[segment.fold] as f64;
+            let objective = -clipped_surrogate(
+                &log_probs,
+                &batch.old_log_probs.narrow(0, start, len),
+                &global.narrow(0, start, len),
+                clip,
+            )
+            .loss
+                * share;
+            for (total, part) in g[segment.fold]
+                .iter_mut()
+                .zip(objective_gradient(&objective, &params_after)?)
+            {
+                *total += part;
+            }
         }
     }
 
     let params_before = before.trainable();
-    let mut c = Vec::with_capacity(starts.len());
-    for &start in &starts {
-        let obs = before.normalize(&rows(&batch.obs, start));
-        let (mean, log_std) = before.distribution(&obs);
-        let log_probs = gaussian_log_prob(&mean, &log_std, &rows(&batch.actions, start));
-        c.push(log_prob_jvp(&log_probs, &params_before, &g)?);
+    let mut c = Vec::new();
+    for segment in segments {
+        let direction = &g[if folds == 1 { 0 } else { 1 - segment.fold }];
+        for (start, len) in chunks(*segment) {
+            let obs = before.normalize(&batch.obs.narrow(0, start, len));
+            let (mean, log_std) = before.distribution(&obs);
+            let log_probs =
+                gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len));
+            c.push(log_prob_jvp(&log_probs, &params_before, direction)?);
+        }
     }
     Ok(Tensor::cat(&c, 0))
 }
@@ -142,6 +227,7 @@ pub fn ascend(
 mod tests {
     use super::*;
     use crate::algo::copo::{coordinated_advantage, reparameterised_phi};
+    use junction_common::fragment::RolloutFragment;
     use tch::Kind;
 
     const F64: (Kind, Device) = (Kind::Double, Device::Cpu);
@@ -290,6 +376,95 @@ mod tests {
                 analytic[i]
             );
         }
+    }
+
+    fn alive(pattern: &[bool]) -> RolloutFragment {
+        RolloutFragment {
+            alive: pattern.to_vec(),
+            ..RolloutFragment::default()
+        }
+    }
+
+    #[test]
+    fn segments_follow_the_fragments_rows_and_alternate_folds_when_cross_fitted() {
+        let fragments = [
+            alive(&[true, false, true]),
+            alive(&[false, false]),
+            alive(&[true; 3]),
+            alive(&[true]),
+        ];
+        let at = |start, len, fold| Segment { start, len, fold };
+        assert_eq!(segments(&fragments, false), [at(0, 6, 0)]);
+        assert_eq!(
+            segments(&fragments, true),
+            [at(0, 2, 0), at(2, 3, 1), at(5, 1, 0)]
+        );
+        // One fragment: its earlier and later rows.
+        assert_eq!(segments(&fragments[2..3], true), [at(0, 1, 0), at(1, 2, 1)]);
+    }
+
+    #[test]
+    fn cross_fitted_rows_are_steered_only_by_the_other_folds_global_advantages() {
+        tch::manual_seed(13);
+        let rows = 10;
+        let policy = GaussianPolicy::new(Device::Cpu, 3, 2, &[8], -0.5);
+        let obs = Tensor::randn([rows, 3], (Kind::Float, Device::Cpu));
+        let actions = Tensor::randn([rows, 2], (Kind::Float, Device::Cpu));
+        let (mean, log_std) = policy.distribution(&policy.normalize(&obs));
+        let batch = TrainBatch {
+            critic_inputs: obs.zeros_like(),
+            old_log_probs: gaussian_log_prob(&mean, &log_std, &actions).detach() - 0.05,
+            obs,
+            actions,
+            heads: Vec::new(),
+            neighbour_counts: vec![0; rows as usize],
+            len: rows as usize,
+        };
+        let global = Tensor::randn([rows], (Kind::Float, Device::Cpu));
+        // Fold 0's advantages shuffled among its rows: the batch's mean and std (and so fold
+        // 1's standardised advantages) stay, fold 0's gradient g changes.
+        let shuffled =
+            global.index_select(0, &Tensor::from_slice(&[3i64, 0, 1, 2, 4, 5, 6, 7, 8, 9]));
+        let folds = [
+            Segment {
+                start: 0,
+                len: 4,
+                fold: 0,
+            },
+            Segment {
+                start: 4,
+                len: 6,
+                fold: 1,
+            },
+        ];
+        let whole = [Segment {
+            start: 0,
+            len: 10,
+            fold: 0,
+        }];
+        let c = |global: &Tensor, segments: &[Segment]| {
+            let c = sensitivities(&policy, &policy, &batch, global, 0.3, 3, segments).unwrap();
+            Vec::<f32>::try_from(c).unwrap()
+        };
+        let differs = |a: &[f32], b: &[f32]| {
+            a.iter()
+                .zip(b)
+                .any(|(x, y)| (x - y).abs() > 1e-6 * (1.0 + x.abs()))
+        };
+        let (before, after) = (c(&global, &folds), c(&shuffled, &folds));
+        assert!(
+            !differs(&before[..4], &after[..4]),
+            "{before:?} vs {after:?}"
+        );
+        assert!(
+            differs(&before[4..], &after[4..]),
+            "fold 1 ignored fold 0's g"
+        );
+        let (before, after) = (c(&global, &whole), c(&shuffled, &whole));
+        assert!(
+            differs(&before[..4], &after[..4]),
+            "one fold: every row sees its own g"
+        );
     }
 
     #[test]
