@@ -121,8 +121,8 @@ pub fn segments(fragments: &[RolloutFragment], cross_fit: bool) -> Vec<Segment> 
 /// c_k for every row of `batch`: the policy `before` the update, the policy `after` it, the
 /// batch's global advantages (standardised here over the whole batch), the rows' `segments`
 /// (in row order, covering the batch; [`segments`]): g is the mean over a fold's rows, and a
-/// row's c_k takes it from the other of two folds, or from its own where there is one. Rows are taken `chunk` at
-/// a time to bound the memory of the double backward.
+/// row's c_k takes it from the other of two folds, or from its own where there is one. Rows
+/// are taken `chunk` at a time to bound the memory of the double backward.
 pub fn sensitivities(
     before: &GaussianPolicy,
     after: &GaussianPolicy,
@@ -190,7 +190,7 @@ pub fn sensitivities(
             c.push(log_prob_jvp(&log_probs, &params_before, direction)?);
         }
     }
-    Ok(Tensor::cat(&c, 0))
+    Ok(Tensor::f_cat(&c, 0)?)
 }
 
 /// Adam ascent on the parameters `adam` holds: `iterations` passes over shuffled minibatches
