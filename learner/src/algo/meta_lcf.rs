@@ -143,6 +143,11 @@ pub fn sensitivities(
                 )
             })
     };
+    let log_probs = |policy: &GaussianPolicy, start: i64, len: i64| {
+        let obs = policy.normalize(&batch.obs.narrow(0, start, len));
+        let (mean, log_std) = policy.distribution(&obs);
+        gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len))
+    };
     let global = standardize(global_advantages);
     let folds = segments.iter().map(|s| s.fold + 1).max().unwrap_or(0);
     let mut fold_rows = vec![0usize; folds];
@@ -156,10 +161,7 @@ pub fn sensitivities(
         .collect();
     for segment in segments {
         for (start, len) in chunks(*segment) {
-            let obs = after.normalize(&batch.obs.narrow(0, start, len));
-            let (mean, log_std) = after.distribution(&obs);
-            let log_probs =
-                gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len));
+            let log_probs = log_probs(after, start, len);
             let share = len as f64 / fold_rows[segment.fold] as f64;
             let objective = -clipped_surrogate(
                 &log_probs,
@@ -183,11 +185,11 @@ pub fn sensitivities(
     for segment in segments {
         let direction = &g[if folds == 1 { 0 } else { 1 - segment.fold }];
         for (start, len) in chunks(*segment) {
-            let obs = before.normalize(&batch.obs.narrow(0, start, len));
-            let (mean, log_std) = before.distribution(&obs);
-            let log_probs =
-                gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len));
-            c.push(log_prob_jvp(&log_probs, &params_before, direction)?);
+            c.push(log_prob_jvp(
+                &log_probs(before, start, len),
+                &params_before,
+                direction,
+            )?);
         }
     }
     Ok(Tensor::f_cat(&c, 0)?)
