@@ -463,6 +463,20 @@ pub struct LcfConfig {
     pub phi_deg: f32,
     pub alpha: f32,
     pub beta: f32,
+    /// The global return the learned LCFs (copo, dynamic-lcf) climb.
+    pub global_return: GlobalReturn,
+}
+
+/// Where an agent's global return (the scene's mean reward, step by step) ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GlobalReturn {
+    /// CoPO's: with the agent, so at γ = 1 an agent's global return grows with its own
+    /// lifetime, and waiting (or not arriving) earns it more of the scene's reward.
+    Agent,
+    /// With the scene: after the agent ends the return goes on, bootstrapped from the agents
+    /// still in the scene, as the paper's objective (the scene's total reward) does.
+    Scene,
 }
 
 /// CoPO's learned LCF distribution (`learner.algo = "copo"`).

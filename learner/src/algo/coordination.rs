@@ -21,6 +21,8 @@ use super::batch::TrainBatch;
 pub struct Signal {
     pub critic: &'static str,
     pub gamma: Option<f32>,
+    /// The return goes on after the agent ends, with the scene (`lcf.global_return = "scene"`).
+    pub outlives_agent: bool,
 }
 
 /// What the learned LCF needs after the PPO epochs.
@@ -125,6 +127,7 @@ impl Coordination for FixedLcf {
         vec![Signal {
             critic: "critic",
             gamma: None,
+            outlives_agent: false,
         }]
     }
 

@@ -26,7 +26,7 @@ use std::collections::BTreeMap;
 
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::CopoConfig;
+use junction_common::config::{CopoConfig, GlobalReturn};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, LcfDistribution, MAX_PHI_DEG};
 use junction_common::weights::{Decoded, WeightsError};
@@ -84,10 +84,11 @@ pub struct CopoLcf {
     adam: Adam,
     iterations: usize,
     cross_fit: bool,
+    global_return: GlobalReturn,
 }
 
 impl CopoLcf {
-    pub fn new(config: &CopoConfig, device: Device) -> Self {
+    pub fn new(config: &CopoConfig, global_return: GlobalReturn, device: Device) -> Self {
         let start = [
             (config.initial_mean_deg / MAX_PHI_DEG).atanh(),
             (config.initial_std_deg / MAX_PHI_DEG).ln(),
@@ -100,6 +101,7 @@ impl CopoLcf {
             params,
             iterations: config.meta_iterations,
             cross_fit: config.meta_cross_fit,
+            global_return,
         }
     }
 
@@ -119,14 +121,17 @@ impl Coordination for CopoLcf {
             Signal {
                 critic: "critic",
                 gamma: None,
+                outlives_agent: false,
             },
             Signal {
                 critic: "neighbourhood_critic",
                 gamma: None,
+                outlives_agent: false,
             },
             Signal {
                 critic: "global_critic",
                 gamma: Some(1.0),
+                outlives_agent: self.global_return == GlobalReturn::Scene,
             },
         ]
     }
@@ -253,7 +258,34 @@ mod tests {
     }
 
     fn coordination() -> CopoLcf {
-        CopoLcf::new(&RunConfig::default().copo, Device::Cpu)
+        CopoLcf::new(&RunConfig::default().copo, GlobalReturn::Agent, Device::Cpu)
+    }
+
+    #[test]
+    fn a_scene_global_return_goes_on_past_an_agents_end_and_nothing_else_does() {
+        // Critics ≡ 2 and λ = 0: A = r + γ·(value after) − 2. Slot 5 ends at t = 0 (row 5);
+        // the other five slots go on, so the scene's value after it is 2.
+        let fragment = copo_fragment();
+        let batch_of = |global_return| {
+            let copo = CopoLcf::new(&RunConfig::default().copo, global_return, Device::Cpu);
+            constant_critic_batch(&copo, &fragment, 2.0, 0.99, 0.0)
+        };
+        let (agent, scene) = (batch_of(GlobalReturn::Agent), batch_of(GlobalReturn::Scene));
+        for head in 0..3 {
+            let (a, s) = (
+                host(&agent.heads[head].advantages),
+                host(&scene.heads[head].advantages),
+            );
+            for row in 0..a.len() {
+                let lifted = if head == GLOBAL && row == 5 { 2.0 } else { 0.0 };
+                assert!(
+                    (s[row] - a[row] - lifted).abs() < 1e-6,
+                    "head {head} row {row}: {} vs {}",
+                    s[row],
+                    a[row]
+                );
+            }
+        }
     }
 
     #[test]
@@ -314,7 +346,7 @@ mod tests {
         SharedPpo::new(
             "copo",
             OwnObservation,
-            Box::new(CopoLcf::new(&run.copo, Device::Cpu)),
+            Box::new(CopoLcf::new(&run.copo, run.lcf.global_return, Device::Cpu)),
             &run,
             2,
             2,

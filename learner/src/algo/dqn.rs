@@ -22,7 +22,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Reduction, Tensor};
 
-use junction_common::config::{DqnConfig, LcfConfig};
+use junction_common::config::{DqnConfig, GlobalReturn, LcfConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::policy::Policy;
@@ -90,6 +90,7 @@ impl Dqn {
                 phi_deg: 0.0,
                 alpha: 1.0,
                 beta: 1.0,
+                global_return: GlobalReturn::Agent,
             },
             replay: ReplayBuffer::new(config.replay_capacity, obs_dim),
             online,
@@ -448,6 +449,7 @@ mod tests {
             phi_deg: 90.0,
             alpha: 1.0,
             beta: 1.0,
+            global_return: GlobalReturn::Agent,
         };
         let mut learner = dqn(&fixture_config()).with_coordination(&cooperative);
         learner.update(std::slice::from_ref(&fragment)).unwrap();

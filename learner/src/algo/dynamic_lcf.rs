@@ -34,7 +34,7 @@ use std::borrow::Cow;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{DynamicLcfConfig, LcfConfig};
+use junction_common::config::{DynamicLcfConfig, GlobalReturn, LcfConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, FEATURES};
 use junction_common::policy::Mlp;
@@ -80,6 +80,7 @@ pub struct DynamicLcf {
     beta: f32,
     iterations: usize,
     cross_fit: bool,
+    global_return: GlobalReturn,
     max_phi_deg: f64,
     /// Largest mean |Δφ| over a batch per update, degrees (0: unpaced).
     max_phi_step_deg: f64,
@@ -104,6 +105,7 @@ impl DynamicLcf {
             beta: lcf.beta,
             iterations: config.meta_iterations,
             cross_fit: config.meta_cross_fit,
+            global_return: lcf.global_return,
             max_phi_deg: f64::from(config.max_phi_deg),
             max_phi_step_deg: f64::from(config.max_phi_step_deg),
         }
@@ -152,10 +154,12 @@ impl Coordination for DynamicLcf {
             Signal {
                 critic: "critic",
                 gamma: None,
+                outlives_agent: false,
             },
             Signal {
                 critic: "global_critic",
                 gamma: Some(1.0),
+                outlives_agent: self.global_return == GlobalReturn::Scene,
             },
         ]
     }
@@ -311,6 +315,20 @@ mod tests {
     }
 
     #[test]
+    fn only_the_global_head_outlives_the_agent_and_only_when_asked() {
+        for (global_return, outlives) in [(GlobalReturn::Agent, false), (GlobalReturn::Scene, true)]
+        {
+            let lcf = LcfConfig {
+                global_return,
+                ..RunConfig::default().lcf
+            };
+            let dynamic = DynamicLcf::new(&RunConfig::default().dynamic_lcf, &lcf, Device::Cpu);
+            let flags: Vec<bool> = dynamic.signals().iter().map(|s| s.outlives_agent).collect();
+            assert_eq!(flags, vec![false, outlives]);
+        }
+    }
+
+    #[test]
     fn the_coordinated_reward_by_hand() {
         // φ = 30° for agents with neighbours, α = 1, β = ½; critics ≡ 0 and λ = 0 make
         // A_C = r_C. Rewards by slot: −½, ½, 3⁄2, −½, ½, 3⁄2 at both steps; r_N at t = 0:
@@ -320,6 +338,7 @@ mod tests {
             phi_deg: 0.0,
             alpha: 1.0,
             beta: 0.5,
+            global_return: GlobalReturn::Agent,
         };
         let dynamic = constant((1.0f64 / 3.0).atanh(), &lcf, 1e-4);
         let batch = constant_critic_batch(&dynamic, &neighbourhood_fragment(), 0.0, 0.99, 0.0);

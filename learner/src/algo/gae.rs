@@ -11,6 +11,9 @@ pub struct Trajectories<'a> {
     pub values: &'a [f32],
     /// V(bootstrap_obs[slot]) for agents that continue past the last step.
     pub bootstrap_values: &'a [f32],
+    /// Per step, what an agent that ends there bootstraps from: 0 where its return ends with
+    /// it, the scene's value ([`scene_values_after_step`]) where the return outlives it.
+    pub after_done: &'a [f32],
 }
 
 /// Advantages and value targets (advantage + value), 0 in empty cells.
@@ -19,8 +22,9 @@ pub struct Estimates {
     pub returns: Vec<f32>,
 }
 
-/// A done ends the agent (no bootstrap); an agent alive at the last step bootstraps from its
-/// value after the fragment; an empty cell separates agents sharing a slot.
+/// A done ends the agent's own chain of advantages and bootstraps from `after_done` (0: the
+/// return ends); an agent alive at the last step bootstraps from its value after the fragment;
+/// an empty cell separates agents sharing a slot.
 pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
     let cells = traj.steps * traj.agents;
     let mut advantages = vec![0.0; cells];
@@ -36,7 +40,7 @@ pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
                 continue;
             }
             let (bootstrap, carried) = if traj.dones[i] {
-                (0.0, 0.0)
+                (traj.after_done[t], 0.0)
             } else {
                 (next_value, next_advantage)
             };
@@ -52,6 +56,31 @@ pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
         advantages,
         returns,
     }
+}
+
+/// The scene's value after each step t: the mean value at t + 1 of the agents that go on past
+/// t (after the last step, their bootstrap values), what an agent ending at t leaves behind
+/// when its return outlives it; 0 where no agent goes on (the scene ended). `after_done` is
+/// not read.
+pub fn scene_values_after_step(traj: &Trajectories) -> Vec<f32> {
+    let goes_on = |t: usize, slot: usize| {
+        let i = t * traj.agents + slot;
+        traj.alive[i] && !traj.dones[i]
+    };
+    (0..traj.steps)
+        .map(|t| {
+            let (mut sum, mut count) = (0.0, 0usize);
+            for slot in (0..traj.agents).filter(|&s| goes_on(t, s)) {
+                sum += if t + 1 < traj.steps {
+                    traj.values[(t + 1) * traj.agents + slot]
+                } else {
+                    traj.bootstrap_values[slot]
+                };
+                count += 1;
+            }
+            if count == 0 { 0.0 } else { sum / count as f32 }
+        })
+        .collect()
 }
 
 /// GAE's advantages are linear in the rewards: A_k = Σ_j (γλ)^{j−k}·r_j + (terms without
@@ -102,6 +131,7 @@ mod tests {
             alive: &[true, false, true, true, true, true],
             values: &[0.5, 0.0, 1.0, 0.2, 0.4, 0.3],
             bootstrap_values: &[2.0, 1.0],
+            after_done: &[0.0; 3],
         };
         let e = gae(&traj, 0.9, 0.8);
         // Slot 0. t=2 (B): δ = 0.5 + 0.9·2.0 − 0.4 = 1.9 → A = 1.9.
@@ -144,6 +174,7 @@ mod tests {
                     alive: &alive,
                     values: &values,
                     bootstrap_values: &[2.0, 1.0],
+                    after_done: &[0.0; 3],
                 },
                 0.9,
                 0.8,
@@ -179,8 +210,53 @@ mod tests {
             alive: &[true, true, true],
             values: &[0.0, 10.0, -4.0],
             bootstrap_values: &[100.0],
+            after_done: &[0.0; 3],
         };
         let e = gae(&traj, 1.0, 1.0);
         assert_eq!(e.returns, vec![6.0, 5.0, 3.0]);
+    }
+
+    #[test]
+    fn a_return_that_outlives_its_agent_goes_on_with_the_agents_left_in_the_scene() {
+        // Three slots, three steps. Slot 0: agent A ends at t = 0, slot empty after.
+        // Slot 1: agent B goes on through the fragment (bootstrap 6.0). Slot 2: agent C goes
+        // on past t = 0, ends at t = 1; agent D spawns at t = 2 and goes on (bootstrap 8.0).
+        let (dones, alive) = (
+            [true, false, false, false, false, true, false, false, false],
+            [true, true, true, false, true, true, false, true, true],
+        );
+        let values = [1.0, 2.0, 3.0, 0.0, 4.0, 5.0, 0.0, 7.0, 9.0];
+        let mut traj = Trajectories {
+            steps: 3,
+            agents: 3,
+            rewards: &[0.5; 9],
+            dones: &dones,
+            alive: &alive,
+            values: &values,
+            bootstrap_values: &[0.0, 6.0, 8.0],
+            after_done: &[],
+        };
+        // After t = 0, B and C go on: (4 + 5) / 2; after t = 1 only B does (C ends there,
+        // D is not there yet): 7; after t = 2, B and D: (6 + 8) / 2.
+        let scene = scene_values_after_step(&traj);
+        assert_eq!(scene, vec![4.5, 7.0, 7.0]);
+        traj.after_done = &scene;
+        let e = gae(&traj, 1.0, 0.5);
+        // A ends at t = 0 but its return goes on: δ = 0.5 + 4.5 − 1 = 4.0; C at t = 1:
+        // δ = 0.5 + 7 − 5 = 2.5, and at t = 0 C carries it: 0.5 + 5 − 3 + 0.5·2.5 = 3.75.
+        assert_eq!(e.advantages[0], 4.0);
+        assert_eq!(e.advantages[5], 2.5);
+        assert_eq!(e.advantages[2], 3.75);
+        // Where the return ends with the agent, A's is its last reward less its value.
+        traj.after_done = &[0.0; 3];
+        assert_eq!(gae(&traj, 1.0, 0.5).advantages[0], -0.5);
+        // A scene whose every agent ends leaves nothing to go on with.
+        let all_done = [true; 9];
+        let ended = Trajectories {
+            dones: &all_done,
+            alive: &[true; 9],
+            ..traj
+        };
+        assert_eq!(scene_values_after_step(&ended), vec![0.0; 3]);
     }
 }

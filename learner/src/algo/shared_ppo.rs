@@ -192,6 +192,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                     .collect::<Result<_, _>>()?,
                 value: Box::new(move |x| value(critic, x)),
                 gamma: signal.gamma.unwrap_or(c.gamma),
+                outlives_agent: signal.outlives_agent,
             });
         }
         // The cost side of PPO-Lagrangian: the same rows, the costs, the cost critic.
@@ -203,6 +204,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
                     .collect(),
                 value: Box::new(|x| safety.cost_value(x)),
                 gamma: c.gamma,
+                outlives_agent: false,
             });
         }
         let batch = assemble(
@@ -535,6 +537,7 @@ pub(crate) mod testing {
                     Tensor::full([x.size()[0]], f64::from(value), (Kind::Float, x.device()))
                 }),
                 gamma: signal.gamma.unwrap_or(gamma),
+                outlives_agent: signal.outlives_agent,
             })
             .collect();
         let fragments = std::slice::from_ref(fragment);
@@ -682,7 +685,7 @@ mod tests {
     };
     use super::*;
     use crate::algo::ippo::Ippo;
-    use junction_common::config::LcfConfig;
+    use junction_common::config::{GlobalReturn, LcfConfig};
 
     fn learner(lcf: &LcfConfig) -> Ippo {
         let mut run = small_run();
@@ -798,6 +801,7 @@ mod tests {
             phi_deg,
             alpha: 1.0,
             beta: 1.0,
+            global_return: GlobalReturn::Agent,
         };
         let mut plain = learner(&lcf(0.0));
         let mut cooperative = learner(&lcf(90.0));
