@@ -8,7 +8,8 @@
 //! for each update (the loop is shared_ppo.rs's; the critics see the agent's observation):
 //!     r_i: own reward; r_N: mean reward of its live neighbours (0 alone);
 //!     r_G: mean reward of every agent in the scene at that step
-//!     A_i, A_N ← GAE(r_i, V_i), GAE(r_N, V_N) at γ;  A_G ← GAE(r_G, V_G) at γ = 1
+//!     A_i, A_N ← GAE(r_i, V_i), GAE(r_N, V_N) at γ;  A_G ← GAE(r_G, V_G) at γ = 1, ending
+//!     with the agent or going on with the scene (`lcf.global_return`)
 //!     A_C = cos φ·A_i + sin φ·A_N                        (φ read from the agent's observation)
 //!     PPO epochs on standardised A_C; value losses of V_i, V_N and V_G
 //!     meta-gradient on ψ = (atanh(μ/90°), ln(σ/90°)), each agent's draw reparameterised:

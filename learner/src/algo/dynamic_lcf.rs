@@ -9,7 +9,8 @@
 //! for each update (the loop is shared_ppo.rs's; the critics see the agent's observation):
 //!     r_C = α·cos φ·r_i + β·sin φ·r_N     (r_N: mean reward of the live neighbours, 0 alone)
 //!     r_G = mean reward of every agent in the scene at that step
-//!     A_C ← GAE(r_C, V_C) at γ;  A_G ← GAE(r_G, V_G) at γ = 1
+//!     A_C ← GAE(r_C, V_C) at γ;  A_G ← GAE(r_G, V_G) at γ = 1, ending with the agent or going
+//!     on with the scene (`lcf.global_return`)
 //!     PPO epochs on standardised A_C; value losses of V_C and V_G
 //!     meta-gradient on ψ: A_C is linear in the rewards, so with w = GAEᵀ·c (gae.rs)
 //!         mean_k[c_k·A_C,k(ψ)] = mean_j[w_j·r_C,j(ψ)] + terms without ψ
