@@ -9,7 +9,7 @@ use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
 
-use super::gae::{Estimates, Trajectories, gae, scene_values_after_step};
+use super::gae::{Estimates, Trajectories, gae};
 
 /// Alive cells of every fragment, in (fragment, step, slot) order, on the training device.
 pub struct TrainBatch {
@@ -41,7 +41,7 @@ pub struct Head<'a> {
     /// Critic-input rows → values [m].
     pub value: Box<dyn Fn(&Tensor) -> Tensor + 'a>,
     pub gamma: f32,
-    /// The return goes on with the scene after the agent ends ([`scene_values_after_step`]).
+    /// The return goes on with the scene after the agent ends ([`super::gae::gae`]).
     pub outlives_agent: bool,
 }
 
@@ -253,26 +253,23 @@ fn head_estimates(
                 }
             })
             .collect();
-        let mut traj = Trajectories {
-            steps: f.steps,
-            agents: f.agents,
-            rewards,
-            dones: &f.dones,
-            alive: &f.alive,
-            values: &cell_values,
-            bootstrap_values: &bootstrap_values,
-            after_done: &[],
-        };
-        let scene_values = if head.outlives_agent {
-            scene_values_after_step(&traj)
-        } else {
-            vec![0.0; f.steps]
-        };
-        traj.after_done = &scene_values;
         let Estimates {
             advantages: adv,
             returns: ret,
-        } = gae(&traj, head.gamma, lambda);
+        } = gae(
+            &Trajectories {
+                steps: f.steps,
+                agents: f.agents,
+                rewards,
+                dones: &f.dones,
+                alive: &f.alive,
+                values: &cell_values,
+                bootstrap_values: &bootstrap_values,
+            },
+            head.gamma,
+            lambda,
+            head.outlives_agent,
+        );
         for cell in (0..cells).filter(|&c| f.alive[c]) {
             advantages.push(adv[cell]);
             returns.push(ret[cell]);

@@ -11,9 +11,6 @@ pub struct Trajectories<'a> {
     pub values: &'a [f32],
     /// V(bootstrap_obs[slot]) for agents that continue past the last step.
     pub bootstrap_values: &'a [f32],
-    /// Per step, what an agent that ends there bootstraps from: 0 where its return ends with
-    /// it, the scene's value ([`scene_values_after_step`]) where the return outlives it.
-    pub after_done: &'a [f32],
 }
 
 /// Advantages and value targets (advantage + value), 0 in empty cells.
@@ -22,10 +19,12 @@ pub struct Estimates {
     pub returns: Vec<f32>,
 }
 
-/// A done ends the agent's own chain of advantages and bootstraps from `after_done` (0: the
-/// return ends); an agent alive at the last step bootstraps from its value after the fragment;
-/// an empty cell separates agents sharing a slot.
-pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
+/// A done ends the agent's own chain of advantages and its return, unless the return
+/// `outlives_agent`: then it bootstraps from the scene's value after that step
+/// ([`scene_values_after_step`]); an agent alive at the last step bootstraps from its value
+/// after the fragment; an empty cell separates agents sharing a slot.
+pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32, outlives_agent: bool) -> Estimates {
+    let after_done = outlives_agent.then(|| scene_values_after_step(traj));
     let cells = traj.steps * traj.agents;
     let mut advantages = vec![0.0; cells];
     let mut returns = vec![0.0; cells];
@@ -40,7 +39,7 @@ pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
                 continue;
             }
             let (bootstrap, carried) = if traj.dones[i] {
-                (traj.after_done[t], 0.0)
+                (after_done.as_ref().map_or(0.0, |v| v[t]), 0.0)
             } else {
                 (next_value, next_advantage)
             };
@@ -60,8 +59,7 @@ pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32) -> Estimates {
 
 /// The scene's value after each step t: the mean value at t + 1 of the agents that go on past
 /// t (after the last step, their bootstrap values), what an agent ending at t leaves behind
-/// when its return outlives it; 0 where no agent goes on (the scene ended). `after_done` is
-/// not read.
+/// when its return outlives it; 0 where no agent goes on (the scene ended).
 pub fn scene_values_after_step(traj: &Trajectories) -> Vec<f32> {
     let goes_on = |t: usize, slot: usize| {
         let i = t * traj.agents + slot;
@@ -131,9 +129,8 @@ mod tests {
             alive: &[true, false, true, true, true, true],
             values: &[0.5, 0.0, 1.0, 0.2, 0.4, 0.3],
             bootstrap_values: &[2.0, 1.0],
-            after_done: &[0.0; 3],
         };
-        let e = gae(&traj, 0.9, 0.8);
+        let e = gae(&traj, 0.9, 0.8, false);
         // Slot 0. t=2 (B): δ = 0.5 + 0.9·2.0 − 0.4 = 1.9 → A = 1.9.
         // t=1 (A, done): δ = 2.0 − 1.0 = 1.0 → A = 1.0 (nothing carried across the done).
         // t=0 (A): δ = 1.0 + 0.9·1.0 − 0.5 = 1.4; A = 1.4 + 0.72·1.0 = 2.12.
@@ -174,10 +171,10 @@ mod tests {
                     alive: &alive,
                     values: &values,
                     bootstrap_values: &[2.0, 1.0],
-                    after_done: &[0.0; 3],
                 },
                 0.9,
                 0.8,
+                false,
             )
             .advantages
         };
@@ -210,9 +207,8 @@ mod tests {
             alive: &[true, true, true],
             values: &[0.0, 10.0, -4.0],
             bootstrap_values: &[100.0],
-            after_done: &[0.0; 3],
         };
-        let e = gae(&traj, 1.0, 1.0);
+        let e = gae(&traj, 1.0, 1.0, false);
         assert_eq!(e.returns, vec![6.0, 5.0, 3.0]);
     }
 
@@ -226,7 +222,7 @@ mod tests {
             [true, true, true, false, true, true, false, true, true],
         );
         let values = [1.0, 2.0, 3.0, 0.0, 4.0, 5.0, 0.0, 7.0, 9.0];
-        let mut traj = Trajectories {
+        let traj = Trajectories {
             steps: 3,
             agents: 3,
             rewards: &[0.5; 9],
@@ -234,22 +230,19 @@ mod tests {
             alive: &alive,
             values: &values,
             bootstrap_values: &[0.0, 6.0, 8.0],
-            after_done: &[],
         };
         // After t = 0, B and C go on: (4 + 5) / 2; after t = 1 only B does (C ends there,
         // D is not there yet): 7; after t = 2, B and D: (6 + 8) / 2.
         let scene = scene_values_after_step(&traj);
         assert_eq!(scene, vec![4.5, 7.0, 7.0]);
-        traj.after_done = &scene;
-        let e = gae(&traj, 1.0, 0.5);
+        let e = gae(&traj, 1.0, 0.5, true);
         // A ends at t = 0 but its return goes on: δ = 0.5 + 4.5 − 1 = 4.0; C at t = 1:
         // δ = 0.5 + 7 − 5 = 2.5, and at t = 0 C carries it: 0.5 + 5 − 3 + 0.5·2.5 = 3.75.
         assert_eq!(e.advantages[0], 4.0);
         assert_eq!(e.advantages[5], 2.5);
         assert_eq!(e.advantages[2], 3.75);
         // Where the return ends with the agent, A's is its last reward less its value.
-        traj.after_done = &[0.0; 3];
-        assert_eq!(gae(&traj, 1.0, 0.5).advantages[0], -0.5);
+        assert_eq!(gae(&traj, 1.0, 0.5, false).advantages[0], -0.5);
         // A scene whose every agent ends leaves nothing to go on with.
         let all_done = [true; 9];
         let ended = Trajectories {
