@@ -7,6 +7,7 @@
 #   make experiments BUDGET=N   the paper's method × scene × seed grid and its report
 #                               (scripts/experiments.sh documents every knob)
 #   make python                 the `junction` Python package into .venv (docs/PYTHON.md)
+#   make lint                   clippy over every crate and target, warnings as errors
 SHELL := /bin/bash
 
 # tch builds against the PyTorch in the project-local venv (scripts/setup.sh installs it).
@@ -16,7 +17,7 @@ export LIBTORCH_USE_PYTORCH := 1
 
 CARGO ?= cargo
 
-.PHONY: setup test-setup build python run test bench experiments
+.PHONY: setup test-setup build python run test lint bench experiments
 
 setup:
 	@scripts/setup.sh
@@ -38,6 +39,11 @@ python: setup
 test: test-setup build python
 	$(CARGO) test --release --workspace
 	.venv/bin/python -m pytest -q python/tests
+
+# Not part of `make test`: the toolchain is not pinned, and a newer clippy's new lints should
+# not fail CI on code that did not change.
+lint: setup
+	$(CARGO) clippy --release --workspace --all-targets -- -D warnings
 
 bench: build
 	target/release/actor bench --scenario intersection

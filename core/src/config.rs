@@ -717,7 +717,9 @@ impl RunConfig {
         if !(p.max_importance_weight > 0.0) {
             problems.push("ppo.max_importance_weight must be > 0".to_string());
         }
-        if !(p.kl_coef >= 0.0 && p.kl_coef.is_finite()) || !(p.kl_target > 0.0) {
+        // Written as "all valid" so that a NaN, which fails every comparison, is a problem too.
+        let kl_valid = p.kl_coef >= 0.0 && p.kl_coef.is_finite() && p.kl_target > 0.0;
+        if !kl_valid {
             problems.push("ppo.kl_coef must be >= 0 and ppo.kl_target > 0".to_string());
         }
         if p.epochs == 0 || p.minibatch_size == 0 || p.train_batch_env_steps == 0 {
@@ -757,9 +759,11 @@ impl RunConfig {
         if dynamic.hidden.is_empty() || dynamic.hidden.iter().any(|&h| h <= 0) {
             problems.push("dynamic_lcf.hidden must list at least one positive layer size".into());
         }
-        if !(dynamic.max_phi_deg > 0.0 && dynamic.max_phi_deg <= 90.0)
-            || !(dynamic.max_phi_step_deg >= 0.0 && dynamic.max_phi_step_deg.is_finite())
-        {
+        let phi_bounds_valid = dynamic.max_phi_deg > 0.0
+            && dynamic.max_phi_deg <= 90.0
+            && dynamic.max_phi_step_deg >= 0.0
+            && dynamic.max_phi_step_deg.is_finite();
+        if !phi_bounds_valid {
             problems.push(
                 "dynamic_lcf.max_phi_deg must be in (0, 90] and dynamic_lcf.max_phi_step_deg >= 0"
                     .into(),
@@ -1009,11 +1013,15 @@ impl ScenarioConfig {
             problems.push("scenario.horizon and scenario.agent_horizon must be > 0".to_string());
         }
         let v = &self.vehicle;
-        if !(v.max_lateral_accel >= 0.0 && v.max_lateral_accel.is_finite())
-            || !(v.max_brake_decel > 0.0 && v.max_brake_decel <= 20.0)
-            || !(v.brake_saturation > 0.0 && v.brake_saturation <= 1.0)
-            || !(v.steering_time_constant >= 0.0 && v.steering_time_constant <= 5.0)
-        {
+        let vehicle_valid = v.max_lateral_accel >= 0.0
+            && v.max_lateral_accel.is_finite()
+            && v.max_brake_decel > 0.0
+            && v.max_brake_decel <= 20.0
+            && v.brake_saturation > 0.0
+            && v.brake_saturation <= 1.0
+            && v.steering_time_constant >= 0.0
+            && v.steering_time_constant <= 5.0;
+        if !vehicle_valid {
             problems.push(
                 "scenario.vehicle.max_lateral_accel must be >= 0 (0 = no limit), \
                  scenario.vehicle.max_brake_decel in (0, 20] m/s², \

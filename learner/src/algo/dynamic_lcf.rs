@@ -122,7 +122,9 @@ impl DynamicLcf {
             })
         };
         let moved = change(&self.net);
-        if self.max_phi_step_deg <= 0.0 || !(moved > self.max_phi_step_deg) {
+        // A NaN step is not scaled (its scale would be NaN too): only a measured overshoot is.
+        let overshot = moved > self.max_phi_step_deg;
+        if self.max_phi_step_deg <= 0.0 || !overshot {
             return moved;
         }
         let keep = self.max_phi_step_deg / moved;
