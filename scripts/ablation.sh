@@ -110,4 +110,4 @@ for seed in $SEEDS; do
 done
 say "report"
 "$BIN/learner" report --group-by-dir --methods "$(IFS=,; echo "${names[*]}")" \
-    --out "$OUT/report" "$OUT/runs"
+    --eval-seeds "$EVAL_SEED" --out "$OUT/report" "$OUT/runs"

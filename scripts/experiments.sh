@@ -201,7 +201,7 @@ if [ "${#good_runs[@]}" -gt 0 ]; then
     "$BIN/learner" report "${good_runs[@]}" --out "$OUT/report" \
         --methods "$(tr ' ' ',' <<<"$METHODS")" \
         --scenes "$(for s in $SCENES; do basename "$s" .toml; done | paste -sd,)" \
-        --success-threshold "$SUCCESS" || report_status=$?
+        --success-threshold "$SUCCESS" --eval-seeds "$EVAL_SEED" || report_status=$?
 else
     say "no run finished training: no report"
     report_status=1

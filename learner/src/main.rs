@@ -105,6 +105,11 @@ struct ReportArgs {
         default_value = "1000000,2500000,5000000,7500000,10000000,15000000"
     )]
     marks: Vec<u64>,
+    /// Evaluation seeds (`actor eval --seed`) whose results count, comma-separated; by
+    /// default every one found in a run's eval/, averaged per run. A group whose runs do not
+    /// all have one of these falls back to its training windows.
+    #[arg(long, value_delimiter = ',', value_name = "SEEDS")]
+    eval_seeds: Vec<u64>,
 }
 
 #[derive(Args)]
@@ -247,6 +252,7 @@ fn main() -> anyhow::Result<()> {
                 min_window_episodes: args.min_window_episodes,
                 group_by_dir: args.group_by_dir,
                 marks: args.marks,
+                eval_seeds: args.eval_seeds,
                 ..ReportOptions::default()
             };
             let summary = report::run(&args.runs, &args.out, &options)?;

@@ -68,7 +68,7 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
         "**Not available in this build, skipped:** no-such-method",
         "| ippo | tiny-straight | 4 | ok |",
         "### Table 1 — tiny-straight",
-        "| Source | eval |",
+        "| Source | eval (seed 1000) |",
         "](report/figures/success_rate.png)",
     ] {
         assert!(

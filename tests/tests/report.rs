@@ -1,14 +1,15 @@
 //! `learner report` on the fixed runs in tests/fixtures/report-runs (2 methods × 2 scenes × 2
 //! seeds, evaluations for the intersection runs only, one sampled-action evaluation beside
-//! ippo s1's that the tables must leave out, one unreadable run, one run with a line cut
-//! short): the table's numbers, the sources, and figures that are real pictures.
+//! ippo s1's that the tables must leave out, ippo s1 evaluated on a second evaluation seed
+//! (the same numbers), one unreadable run, one run with a line cut short): the table's
+//! numbers, the sources, and figures that are real pictures.
 
 use std::path::Path;
 use std::process::Command;
 
 use junction_tests::{TempDir, bin, workspace_root};
 
-fn report(out: &Path) -> (String, serde_json::Value) {
+fn report(out: &Path, extra_args: &[&str]) -> (String, serde_json::Value) {
     let fixtures = workspace_root().join("tests/fixtures/report-runs");
     let output = Command::new(bin("learner"))
         .args([
@@ -18,6 +19,7 @@ fn report(out: &Path) -> (String, serde_json::Value) {
             "--success-threshold",
             "0.5",
         ])
+        .args(extra_args)
         .arg(&fixtures)
         .arg("--out")
         .arg(out)
@@ -64,7 +66,7 @@ fn row<'a>(markdown: &'a str, scene: &str, label: &str) -> Vec<&'a str> {
 #[test]
 fn table_numbers_come_from_evaluations_else_the_last_training_window() {
     let dir = TempDir::new("report");
-    let (markdown, summary) = report(dir.path());
+    let (markdown, summary) = report(dir.path(), &[]);
 
     // Intersection: every seed was evaluated (ippo s1's sampled evaluation, success 0, is not
     // counted). Success 0.6 / 0.8 (ippo) and 0.7 / 0.9 (cl):
@@ -80,7 +82,7 @@ fn table_numbers_come_from_evaluations_else_the_last_training_window() {
     );
     assert_eq!(
         row(&markdown, "intersection", "Source")[1..],
-        ["eval", "eval"]
+        ["eval (seeds 1, 2)", "eval (seed 1)"]
     );
     // Equal values everywhere: nothing is bold.
     assert_eq!(
@@ -168,9 +170,30 @@ fn table_numbers_come_from_evaluations_else_the_last_training_window() {
 }
 
 #[test]
+fn evaluation_seeds_can_be_picked_and_a_group_short_of_them_falls_back_to_training() {
+    let picked = TempDir::new("report-eval-seed-1");
+    let (markdown, _) = report(picked.path(), &["--eval-seeds", "1"]);
+    assert_eq!(
+        row(&markdown, "intersection", "Source")[1..],
+        ["eval (seed 1)", "eval (seed 1)"]
+    );
+    assert_eq!(
+        row(&markdown, "intersection", "Success rate")[1..],
+        ["0.7000 ± 1.271", "**0.8000 ± 1.271**"]
+    );
+    // Only ippo s1 was evaluated on seed 2: no column has it for every seed.
+    let short = TempDir::new("report-eval-seed-2");
+    let (markdown, _) = report(short.path(), &["--eval-seeds", "2"]);
+    assert_eq!(
+        row(&markdown, "intersection", "Source")[1..],
+        ["training", "training"]
+    );
+}
+
+#[test]
 fn figures_are_real_pictures_in_png_and_svg() {
     let dir = TempDir::new("report-figures");
-    let (markdown, summary) = report(dir.path());
+    let (markdown, summary) = report(dir.path(), &[]);
     let figures = summary["figures"].as_array().unwrap();
     assert_eq!(figures.len(), 24, "12 metrics × PNG and SVG");
     for figure in figures {

@@ -9,7 +9,7 @@ pub mod aggregate;
 pub mod plot;
 pub mod runs;
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -56,6 +56,9 @@ pub struct ReportOptions {
     pub group_by_dir: bool,
     /// Agent-step counts of the table of training success at marks.
     pub marks: Vec<u64>,
+    /// Evaluation seeds whose `actor eval` results count; empty: every seed found, pooled
+    /// per run (a run evaluated on a validation and an unseen seed averages the two).
+    pub eval_seeds: Vec<u64>,
 }
 
 impl Default for ReportOptions {
@@ -70,6 +73,7 @@ impl Default for ReportOptions {
             marks: vec![
                 1_000_000, 2_500_000, 5_000_000, 7_500_000, 10_000_000, 15_000_000,
             ],
+            eval_seeds: Vec::new(),
         }
     }
 }
@@ -100,6 +104,8 @@ pub struct GroupSummary {
     pub method: String,
     pub seeds: Vec<u64>,
     pub source: Source,
+    /// The evaluation seeds behind the numbers when the source is `eval`, sorted.
+    pub eval_seeds: Vec<u64>,
     /// Mean ± interval over seeds per metric key; None where no run has the metric.
     pub metrics: BTreeMap<String, Option<Estimate>>,
     pub mean_agent_steps: f64,
@@ -193,6 +199,11 @@ pub fn run(paths: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::Re
         }
     }
     anyhow::ensure!(!loaded.is_empty(), "no readable run among {paths:?}");
+    if !options.eval_seeds.is_empty() {
+        for run in &mut loaded {
+            run.evals.retain(|e| options.eval_seeds.contains(&e.seed));
+        }
+    }
     if options.group_by_dir {
         for run in &mut loaded {
             run.method = runs::variant_name(&run.dir);
@@ -318,6 +329,15 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
         method: method.to_string(),
         seeds: members.iter().map(|r| r.seed).collect(),
         source,
+        eval_seeds: match source {
+            Source::Eval => members
+                .iter()
+                .flat_map(|r| r.evals.iter().map(|e| e.seed))
+                .collect::<BTreeSet<u64>>()
+                .into_iter()
+                .collect(),
+            Source::Training => Vec::new(),
+        },
         metrics,
         mean_agent_steps: members.iter().map(|r| r.agent_steps() as f64).sum::<f64>() / n,
         mean_wall_s: members.iter().map(|r| r.wall_s()).sum::<f64>() / n,
@@ -471,7 +491,9 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
         md.push_str(
             "Mean ± 95 % confidence half-width over seeds (Student's t on the per-seed values). \
              Source per column (row *Source*): `eval` = `actor eval` of the final checkpoint \
-             (the policy's mean action on held-out seeds), `training` = the last training \
+             (the policy's mean action on held-out seeds; the evaluation seeds follow, and a \
+             run evaluated on several counts their mean unless `--eval-seeds` picks them), \
+             `training` = the last training \
              window of `progress.jsonl` (the stochastic policy; no per-300-step counts). \
              ↑ higher is better, ↓ lower is better; the best mean of a row is in bold.\n\n",
         );
@@ -520,7 +542,11 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
                 .join(", ")
         });
         row(&mut md, "Source", &|g| match g.source {
-            Source::Eval => "eval".into(),
+            Source::Eval => {
+                let seeds: Vec<String> = g.eval_seeds.iter().map(u64::to_string).collect();
+                let noun = if seeds.len() == 1 { "seed" } else { "seeds" };
+                format!("eval ({noun} {})", seeds.join(", "))
+            }
             Source::Training => "training".into(),
         });
         row(&mut md, "Agent-steps trained (mean)", &|g| {
@@ -822,6 +848,7 @@ mod tests {
             method: "dynamic-lcf".into(),
             seeds: vec![1, 2],
             source: Source::Training,
+            eval_seeds: Vec::new(),
             metrics: BTreeMap::new(),
             mean_agent_steps: 0.0,
             mean_wall_s: 0.0,
