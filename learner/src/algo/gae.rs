@@ -21,7 +21,7 @@ pub struct Estimates {
 
 /// A done ends the agent's own chain of advantages and its return, unless the return
 /// `outlives_agent`: then it bootstraps from the scene's value after that step
-/// ([`scene_values_after_step`]); an agent alive at the last step bootstraps from its value
+/// (`scene_values_after_step`); an agent alive at the last step bootstraps from its value
 /// after the fragment; an empty cell separates agents sharing a slot.
 pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32, outlives_agent: bool) -> Estimates {
     let after_done = outlives_agent.then(|| scene_values_after_step(traj));
@@ -60,7 +60,7 @@ pub fn gae(traj: &Trajectories, gamma: f32, lambda: f32, outlives_agent: bool) -
 /// The scene's value after each step t: the mean value at t + 1 of the agents that go on past
 /// t (after the last step, their bootstrap values), what an agent ending at t leaves behind
 /// when its return outlives it; 0 where no agent goes on (the scene ended).
-pub fn scene_values_after_step(traj: &Trajectories) -> Vec<f32> {
+fn scene_values_after_step(traj: &Trajectories) -> Vec<f32> {
     let goes_on = |t: usize, slot: usize| {
         let i = t * traj.agents + slot;
         traj.alive[i] && !traj.dones[i]
