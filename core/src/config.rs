@@ -334,7 +334,7 @@ pub enum LrSchedule {
     /// `ppo.learning_rate` throughout.
     Constant,
     /// From `ppo.learning_rate` down to 0 in proportion to the agent-steps consumed, reaching 0
-    /// at `run.max_agent_steps`.
+    /// at `run.max_agent_steps`; constant in a run without that budget.
     Linear,
 }
 
@@ -343,7 +343,7 @@ impl LrSchedule {
     pub fn learning_rate(self, base: f64, agent_steps: u64, budget: u64) -> f64 {
         match self {
             LrSchedule::Constant => base,
-            // Validation refuses this; without a budget there is nothing to anneal over.
+            // Without a budget (a run bounded by time, or endless) there is nothing to anneal over.
             LrSchedule::Linear if budget == 0 => base,
             LrSchedule::Linear => base * (1.0 - agent_steps as f64 / budget as f64).max(0.0),
         }
@@ -701,12 +701,6 @@ impl RunConfig {
         }
         if p.learning_rate <= 0.0 || !p.learning_rate.is_finite() {
             problems.push("ppo.learning_rate must be a positive number".to_string());
-        }
-        if p.lr_schedule == LrSchedule::Linear && self.run.max_agent_steps == 0 {
-            problems.push(
-                "ppo.lr_schedule = \"linear\" anneals over run.max_agent_steps: set it (> 0)"
-                    .to_string(),
-            );
         }
         if !(0.0..=1.0).contains(&p.gamma) || !(0.0..=1.0).contains(&p.gae_lambda) {
             problems.push("ppo.gamma and ppo.gae_lambda must be in [0, 1]".to_string());
@@ -1389,20 +1383,16 @@ mod tests {
     }
 
     #[test]
-    fn the_linear_learning_rate_falls_to_zero_at_the_budget_and_needs_one() {
+    fn the_linear_learning_rate_falls_to_zero_at_the_budget_and_stays_constant_without_one() {
         let linear = LrSchedule::Linear;
         assert_eq!(linear.learning_rate(4e-4, 0, 1000), 4e-4);
         assert!((linear.learning_rate(4e-4, 250, 1000) - 3e-4).abs() < 1e-12);
         assert_eq!(linear.learning_rate(4e-4, 1500, 1000), 0.0);
+        assert_eq!(linear.learning_rate(4e-4, 1500, 0), 4e-4);
         assert_eq!(LrSchedule::Constant.learning_rate(4e-4, 900, 1000), 4e-4);
-        assert_eq!(RunConfig::default().ppo.lr_schedule, LrSchedule::Constant);
-        let linear = "ppo.lr_schedule=\"linear\"".to_string();
-        assert!(matches!(
-            RunConfig::load(None, std::slice::from_ref(&linear)),
-            Err(ConfigError::Invalid(_))
-        ));
-        let budgeted = RunConfig::load(None, &[linear, "run.max_agent_steps=5000".into()]);
-        assert_eq!(budgeted.unwrap().ppo.lr_schedule, LrSchedule::Linear);
+        assert_eq!(RunConfig::default().ppo.lr_schedule, LrSchedule::Linear);
+        let constant = RunConfig::load(None, &["ppo.lr_schedule=\"constant\"".into()]);
+        assert_eq!(constant.unwrap().ppo.lr_schedule, LrSchedule::Constant);
     }
 
     #[test]

@@ -132,6 +132,16 @@ impl Trainer {
         self.publish_status(&reporter, &window.summary());
         let _span = tracing::info_span!("trainer", algorithm = self.algorithm.name()).entered();
         tracing::info!(version = self.progress.version, "training started");
+        let ppo_based = config.learner.algo != junction_common::config::AlgoKind::Dqn;
+        if ppo_based
+            && config.ppo.lr_schedule == junction_common::config::LrSchedule::Linear
+            && budget.max_agent_steps == 0
+        {
+            tracing::info!(
+                learning_rate = config.ppo.learning_rate,
+                "ppo.lr_schedule = \"linear\" anneals over run.max_agent_steps, which this run does not set: the learning rate stays constant"
+            );
+        }
         loop {
             let budget_spent = (budget.max_seconds > 0.0
                 && started.elapsed().as_secs_f64() >= budget.max_seconds)

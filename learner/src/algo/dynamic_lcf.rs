@@ -22,8 +22,8 @@
 //! Why the bound, the lone-agent rule and the pace (RESULTS.md, "A well-posed dynamic LCF"):
 //! with φ free in ±90° and CoPO's r_N = 0 for an agent alone, the meta-gradient drove φ to
 //! 90° everywhere (lone agents first: φ only scaled their own reward down) and the agents
-//! learned to wait. φ_max (45° by default) keeps every agent's own reward weighted at least as
-//! much as its neighbours'; φ = 0 alone makes the lone case IPPO; the pace keeps φ from
+//! learned to wait. φ_max keeps every agent's own reward weighted more than its neighbours'
+//! (20° by default: at 45° runs whose φ rose past 30° still learned to wait); φ = 0 alone makes the lone case IPPO; the pace keeps φ from
 //! outrunning the policy that has to adapt to it.
 //!
 //! φ does not enter the observation: the learner computes it from the features, so actors run
