@@ -28,7 +28,8 @@
 #                    budget, as in CoPO's schedule.
 #   OUT              results directory [results/grid-<date>]
 #   RESUME           1: continue the grid in an existing OUT, keeping every run that its
-#                    grid.tsv records as trained and evaluated [0]
+#                    grid.tsv records as trained and evaluated, and continuing a run stopped
+#                    part-way from its newest checkpoint [0]
 #   BIN              directory of the actor and learner binaries [target/release]
 #
 # A method this build does not have is skipped and reported; a run that fails is recorded
@@ -69,12 +70,13 @@ method_flags() {
     fi
 }
 
-# Trains one run into $1 (method $2, scene $3, seed $4). The one place a run is launched:
-# run-local.sh, i.e. `learner serve --local-actors ACTORS` over shared memory.
+# Trains one run into $1 (method $2, scene $3, seed $4), continuing it from its newest
+# checkpoint when $5 is 1. The one place a run is launched: run-local.sh, i.e. `learner serve
+# --local-actors ACTORS` over shared memory.
 launch_run() {
-    local run_dir=$1 method=$2 scene=$3 seed=$4
+    local run_dir=$1 method=$2 scene=$3 seed=$4 continuing=$5
     # shellcheck disable=SC2046,SC2086 # the flag variables are lists of flags
-    RUN_DIR="$run_dir" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
+    RUN_DIR="$run_dir" RESUME="$continuing" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
         scripts/run-local.sh --scenario "$scene" --seed "$seed" \
         --set "learner.algo=\"$method\"" \
         --set "run.max_agent_steps=$BUDGET" \
@@ -152,10 +154,16 @@ for entry in "${runs[@]}"; do
         eta=", ETA $(((($(date +%s) - started) / executed) * (total - done_count + 1) / 60)) min"
     fi
     executed=$((executed + 1))
-    say "[$done_count/$total] $method on $scene, seed $seed$eta"
+    # RESUME: a run stopped part-way (checkpoints, no evaluation) continues from its newest
+    # checkpoint; `learner serve` refuses to start a new run over another run's checkpoints.
+    continuing=0
+    if [ "${RESUME:-0}" = 1 ] && compgen -G "$run_dir/checkpoints/ckpt-*" >/dev/null; then
+        continuing=1
+    fi
+    say "[$done_count/$total] $method on $scene, seed $seed$eta$([ "$continuing" = 1 ] && echo ", continuing from its newest checkpoint")"
     run_start=$(date +%s)
     mkdir -p "$run_dir"
-    launch_run "$run_dir" "$method" "$scene" "$seed" >"$run_dir/train.log" 2>&1
+    launch_run "$run_dir" "$method" "$scene" "$seed" "$continuing" >>"$run_dir/train.log" 2>&1
     train_status=$?
     train_s=$(($(date +%s) - run_start))
     steps=$(last_progress "$run_dir" agent_steps)

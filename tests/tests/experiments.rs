@@ -1,20 +1,27 @@
 //! `scripts/experiments.sh` end to end on the smallest grid that trains: one method (and one
 //! this build lacks) × the tiny scenario × one seed, a budget of one update. Checks that the
 //! grid trains, evaluates, reports, skips the unknown method with a reason, and that RESUME
-//! keeps a finished run instead of training it again.
+//! keeps a finished run instead of training it again, continues a run stopped part-way from
+//! its checkpoint and starts the runs it has not seen.
 
 use std::time::Duration;
 
 use junction_tests::{Process, TempDir, bin_dir, workspace_root};
 
-fn grid(out: &std::path::Path, log_dir: &std::path::Path, name: &str, resume: bool) -> String {
+fn grid(
+    out: &std::path::Path,
+    log_dir: &std::path::Path,
+    name: &str,
+    seeds: &str,
+    resume: bool,
+) -> String {
     let script = workspace_root().join("scripts/experiments.sh");
     let env = [
         ("BIN", bin_dir().display().to_string()),
         ("OUT", out.display().to_string()),
         ("METHODS", "ippo no-such-method".into()),
         ("SCENES", "tiny-straight".into()),
-        ("SEEDS", "4".into()),
+        ("SEEDS", seeds.into()),
         ("BUDGET", "1500".into()),
         ("ACTORS", "1".into()),
         ("PROGRESS_S", "1".into()),
@@ -41,7 +48,7 @@ fn grid(out: &std::path::Path, log_dir: &std::path::Path, name: &str, resume: bo
 fn the_grid_trains_evaluates_reports_and_resumes() {
     let dir = TempDir::new("experiments");
     let out = dir.path().join("grid");
-    let log = grid(&out, dir.path(), "grid", false);
+    let log = grid(&out, dir.path(), "grid", "4", false);
     assert!(log.contains("[1/1] ippo on tiny-straight, seed 4"), "{log}");
     assert!(
         log.contains(
@@ -79,7 +86,7 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     assert!(out.join("report/figures/success_rate.png").is_file());
 
     // Again with RESUME=1: the finished run is kept, not trained again.
-    let log = grid(&out, dir.path(), "resume", true);
+    let log = grid(&out, dir.path(), "resume", "4", true);
     assert!(
         log.contains("[1/1] ippo on tiny-straight, seed 4: kept from the earlier invocation"),
         "{log}"
@@ -89,4 +96,22 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
             .unwrap()
             .contains("\tok\t")
     );
+
+    // A session that ended mid-training leaves checkpoints and no evaluation: RESUME=1
+    // continues that run from its checkpoint and starts a seed it has not run.
+    let grid_tsv = std::fs::read_to_string(out.join("grid.tsv")).unwrap();
+    let header = grid_tsv.lines().next().unwrap();
+    std::fs::write(out.join("grid.tsv"), format!("{header}\n")).unwrap();
+    std::fs::remove_dir_all(run.join("eval")).unwrap();
+    let log = grid(&out, dir.path(), "continue", "4 5", true);
+    assert!(
+        log.contains("[1/2] ippo on tiny-straight, seed 4, continuing from its newest checkpoint"),
+        "{log}"
+    );
+    assert!(log.contains("[2/2] ippo on tiny-straight, seed 5, ETA"), "{log}");
+    let grid_tsv = std::fs::read_to_string(out.join("grid.tsv")).unwrap();
+    assert_eq!(grid_tsv.matches("\tok\t").count(), 2, "{grid_tsv}");
+    assert!(run.join("eval/eval-tiny-straight-seed1000.json").is_file());
+    let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
+    assert!(train_log.contains("learner: resumed path="), "{train_log}");
 }
