@@ -108,6 +108,11 @@ for seed in $SEEDS; do
         done
     done
 done
+if [ "$interrupted" = 1 ]; then
+    # The report would mix the stopped run's training windows with the finished runs' evaluations.
+    say "interrupted: report not rewritten; the same command resumes (the stopped run trains again)"
+    exit 130
+fi
 say "report"
 "$BIN/learner" report --group-by-dir --methods "$(IFS=,; echo "${names[*]}")" \
     --eval-seeds "$EVAL_SEED" --out "$OUT/report" "$OUT/runs"
