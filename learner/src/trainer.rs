@@ -12,6 +12,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use anyhow::Context;
 use tokio::sync::mpsc;
 
+use junction_common::config::{AlgoKind, LrSchedule};
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::proto;
@@ -132,10 +133,8 @@ impl Trainer {
         self.publish_status(&reporter, &window.summary());
         let _span = tracing::info_span!("trainer", algorithm = self.algorithm.name()).entered();
         tracing::info!(version = self.progress.version, "training started");
-        let ppo_based = config.learner.algo != junction_common::config::AlgoKind::Dqn;
-        if ppo_based
-            && config.ppo.lr_schedule == junction_common::config::LrSchedule::Linear
-            && budget.max_agent_steps == 0
+        let ppo_based = config.learner.algo != AlgoKind::Dqn;
+        if ppo_based && config.ppo.lr_schedule == LrSchedule::Linear && budget.max_agent_steps == 0
         {
             tracing::info!(
                 learning_rate = config.ppo.learning_rate,

@@ -108,7 +108,10 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
         log.contains("[1/2] ippo on tiny-straight, seed 4, continuing from its newest checkpoint"),
         "{log}"
     );
-    assert!(log.contains("[2/2] ippo on tiny-straight, seed 5, ETA"), "{log}");
+    assert!(
+        log.contains("[2/2] ippo on tiny-straight, seed 5, ETA"),
+        "{log}"
+    );
     let grid_tsv = std::fs::read_to_string(out.join("grid.tsv")).unwrap();
     assert_eq!(grid_tsv.matches("\tok\t").count(), 2, "{grid_tsv}");
     assert!(run.join("eval/eval-tiny-straight-seed1000.json").is_file());

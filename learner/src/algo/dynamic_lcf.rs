@@ -23,8 +23,9 @@
 //! with φ free in ±90° and CoPO's r_N = 0 for an agent alone, the meta-gradient drove φ to
 //! 90° everywhere (lone agents first: φ only scaled their own reward down) and the agents
 //! learned to wait. φ_max keeps every agent's own reward weighted more than its neighbours'
-//! (20° by default: at 45° runs whose φ rose past 30° still learned to wait); φ = 0 alone makes the lone case IPPO; the pace keeps φ from
-//! outrunning the policy that has to adapt to it.
+//! (20° by default: at 45° runs whose φ rose past 30° still learned to wait); φ = 0 alone
+//! makes the lone case IPPO; the pace keeps φ from outrunning the policy that has to adapt
+//! to it.
 //!
 //! φ does not enter the observation: the learner computes it from the features, so actors run
 //! the plain policy. f_ψ starts with a near-zero output (φ ≈ 0°: IPPO, like CoPO's μ = 0°).
