@@ -487,6 +487,8 @@ pub struct CopoConfig {
     pub initial_mean_deg: f32,
     /// σ before any meta-gradient step, degrees.
     pub initial_std_deg: f32,
+    /// Bound of μ, degrees: μ = max_mean_deg·tanh(ψ_0).
+    pub max_mean_deg: f32,
     /// Adam step size of the meta-gradient on (μ, log σ).
     pub lcf_lr: f64,
     /// Passes over the batch's minibatches of the meta-gradient after each PPO update.
@@ -742,11 +744,14 @@ impl RunConfig {
         }
         let copo = &self.copo;
         // Written so NaN fails too.
-        let mean_ok = copo.initial_mean_deg.abs() < 90.0;
+        let bound_ok = copo.max_mean_deg > 0.0 && copo.max_mean_deg <= 90.0;
+        let mean_ok = copo.initial_mean_deg.abs() < copo.max_mean_deg;
         let std_ok = copo.initial_std_deg > 0.0 && copo.initial_std_deg.is_finite();
-        if !(mean_ok && std_ok) {
+        if !(bound_ok && mean_ok && std_ok) {
             problems.push(
-                "copo.initial_mean_deg must be in (-90, 90) and copo.initial_std_deg > 0".into(),
+                "copo.max_mean_deg must be in (0, 90], copo.initial_mean_deg within \
+                 (-max_mean_deg, max_mean_deg) and copo.initial_std_deg > 0"
+                    .into(),
             );
         }
         let dynamic = &self.dynamic_lcf;
@@ -1300,6 +1305,33 @@ mod tests {
             Err(ConfigError::Invalid(_))
         ));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn learned_lcf_bounds_outside_their_range_are_refused() {
+        let c = RunConfig::default();
+        assert_eq!(
+            (c.copo.max_mean_deg, c.dynamic_lcf.max_phi_deg),
+            (90.0, 20.0)
+        );
+        for bad in [
+            vec!["copo.max_mean_deg=0.0"],
+            vec!["copo.max_mean_deg=91.0"],
+            vec!["copo.max_mean_deg=nan"],
+            vec!["copo.max_mean_deg=20.0", "copo.initial_mean_deg=20.0"],
+            vec!["copo.initial_mean_deg=-90.0"],
+            vec!["dynamic_lcf.max_phi_deg=0.0"],
+            vec!["dynamic_lcf.max_phi_step_deg=-1.0"],
+        ] {
+            let overrides: Vec<String> = bad.iter().map(|s| s.to_string()).collect();
+            let err = RunConfig::load(None, &overrides);
+            assert!(
+                matches!(err, Err(ConfigError::Invalid(_))),
+                "{bad:?} was accepted: {err:?}"
+            );
+        }
+        let bounded = RunConfig::load(None, &["copo.max_mean_deg=20.0".into()]).unwrap();
+        assert_eq!(bounded.copo.max_mean_deg, 20.0);
     }
 
     #[test]

@@ -12,14 +12,15 @@
 //!     with the agent or going on with the scene (`lcf.global_return`)
 //!     A_C = cos φ·A_i + sin φ·A_N                        (φ read from the agent's observation)
 //!     PPO epochs on standardised A_C; value losses of V_i, V_N and V_G
-//!     meta-gradient on ψ = (atanh(μ/90°), ln(σ/90°)), each agent's draw reparameterised:
+//!     meta-gradient on ψ = (atanh(μ/μ_max), ln(σ/90°)), each agent's draw reparameterised:
 //!         φ_k(ψ) = clip(μ(ψ) + σ(ψ)·ε_k, ±90°),  ε_k = (φ_k − μ)/σ
 //!         `meta_iterations` passes: Adam ascent on mean_k[c_k·A_C,k(ψ)] / std(A_C)
 //!     the next broadcast carries (μ, σ)
 //! ```
 //!
 //! Defaults (`[copo]`) are CoPO's: μ from 0°, σ from 0.1 of its 90° unit (9°), Adam at 1e-4,
-//! 5 passes. CoPO redraws fresh φ for the meta-gradient; reparameterising the agents' own draws
+//! 5 passes, μ within ±90° (`max_mean_deg`; μ = max_mean_deg·tanh ψ_0, so a tighter bound keeps
+//! the meta-gradient smooth up to it, as the dynamic LCF's `max_phi_deg` does). CoPO redraws fresh φ for the meta-gradient; reparameterising the agents' own draws
 //! differentiates the same expectation at the samples the update used.
 
 use std::borrow::Cow;
@@ -47,17 +48,17 @@ const ADAM_KEY: &str = "copo.lcf_adam";
 /// ε of the meta-gradient's Adam (PyTorch's default, which CoPO uses).
 pub const META_ADAM_EPS: f64 = 1e-8;
 
-/// (μ, σ) in degrees of ψ = (atanh(μ/90°), ln(σ/90°)), differentiably.
-pub fn mean_and_std(params: &Tensor) -> (Tensor, Tensor) {
-    let mean = params.get(0).tanh() * f64::from(MAX_PHI_DEG);
+/// (μ, σ) in degrees of ψ = (atanh(μ/μ_max), ln(σ/90°)), differentiably.
+pub fn mean_and_std(params: &Tensor, max_mean_deg: f64) -> (Tensor, Tensor) {
+    let mean = params.get(0).tanh() * max_mean_deg;
     // CoPO's bounds on log σ keep σ positive and finite.
     let std = params.get(1).clamp(-20.0, 2.0).exp() * f64::from(MAX_PHI_DEG);
     (mean, std)
 }
 
 /// φ = clip(μ(ψ) + σ(ψ)·ε, ±90°), degrees, for standard-normal draws ε.
-pub fn reparameterised_phi(params: &Tensor, noise: &Tensor) -> Tensor {
-    let (mean, std) = mean_and_std(params);
+pub fn reparameterised_phi(params: &Tensor, noise: &Tensor, max_mean_deg: f64) -> Tensor {
+    let (mean, std) = mean_and_std(params, max_mean_deg);
     let limit = f64::from(MAX_PHI_DEG);
     (mean + std * noise).clamp(-limit, limit)
 }
@@ -80,8 +81,10 @@ fn phi_of_rows(batch: &TrainBatch) -> Tensor {
 
 /// CoPO's coordination: three value heads, the coordinated advantage, the learned N(μ, σ).
 pub struct CopoLcf {
-    /// ψ = [atanh(μ/90°), ln(σ/90°)] (CoPO's parameterisation in its unit of 90°).
+    /// ψ = [atanh(μ/μ_max), ln(σ/90°)] (CoPO's parameterisation in its unit of 90°).
     params: Tensor,
+    /// μ_max, degrees.
+    max_mean_deg: f64,
     adam: Adam,
     iterations: usize,
     cross_fit: bool,
@@ -91,7 +94,7 @@ pub struct CopoLcf {
 impl CopoLcf {
     pub fn new(config: &CopoConfig, global_return: GlobalReturn, device: Device) -> Self {
         let start = [
-            (config.initial_mean_deg / MAX_PHI_DEG).atanh(),
+            (config.initial_mean_deg / config.max_mean_deg).atanh(),
             (config.initial_std_deg / MAX_PHI_DEG).ln(),
         ];
         let params = Tensor::from_slice(&start)
@@ -100,6 +103,7 @@ impl CopoLcf {
         CopoLcf {
             adam: Adam::new(vec![params.shallow_clone()], config.lcf_lr, META_ADAM_EPS),
             params,
+            max_mean_deg: f64::from(config.max_mean_deg),
             iterations: config.meta_iterations,
             cross_fit: config.meta_cross_fit,
             global_return,
@@ -108,7 +112,7 @@ impl CopoLcf {
 
     /// The distribution agents draw from now.
     pub fn distribution(&self) -> Result<LcfDistribution, AlgoError> {
-        let (mean, std) = tch::no_grad(|| mean_and_std(&self.params));
+        let (mean, std) = tch::no_grad(|| mean_and_std(&self.params, self.max_mean_deg));
         Ok(LcfDistribution {
             mean_deg: f64::try_from(mean)? as f32,
             std_deg: f64::try_from(std)? as f32,
@@ -178,10 +182,11 @@ impl Coordination for CopoLcf {
         let scale =
             f64::try_from(coordinated_advantage(&phi, individual, neighbourhood).std(true))? + 1e-8;
         let noise = tch::no_grad(|| {
-            let (mean, std) = mean_and_std(&self.params);
+            let (mean, std) = mean_and_std(&self.params, self.max_mean_deg);
             (&phi - mean) / std
         });
         let params = &self.params;
+        let max_mean_deg = self.max_mean_deg;
         meta_lcf::ascend(
             &mut self.adam,
             self.iterations,
@@ -191,7 +196,7 @@ impl Coordination for CopoLcf {
             params.device(),
             |idx| {
                 let advantage = coordinated_advantage(
-                    &reparameterised_phi(params, &noise.index_select(0, idx)),
+                    &reparameterised_phi(params, &noise.index_select(0, idx), max_mean_deg),
                     &individual.index_select(0, idx),
                     &neighbourhood.index_select(0, idx),
                 );
@@ -343,7 +348,10 @@ mod tests {
     }
 
     fn copo_learner() -> SharedPpo<OwnObservation> {
-        let run = small_run();
+        copo_learner_with(small_run())
+    }
+
+    fn copo_learner_with(run: RunConfig) -> SharedPpo<OwnObservation> {
         SharedPpo::new(
             "copo",
             OwnObservation,
@@ -390,6 +398,47 @@ mod tests {
                 learner
             },
             &fragment,
+        );
+    }
+
+    /// μ of the distribution after `updates` updates with a meta step large enough to
+    /// saturate tanh, starting from μ = 10°.
+    fn mean_after_large_meta_steps(max_mean_deg: f32, updates: usize) -> f32 {
+        tch::manual_seed(5);
+        let mut run = small_run();
+        run.copo.max_mean_deg = max_mean_deg;
+        run.copo.initial_mean_deg = 10.0;
+        run.copo.lcf_lr = 0.5;
+        let mut learner = copo_learner_with(run);
+        let fragment = copo_fragment();
+        let mut mean = f32::NAN;
+        for _ in 0..updates {
+            mean = learner
+                .update(std::slice::from_ref(&fragment))
+                .unwrap()
+                .lcf_mean_deg as f32;
+        }
+        mean
+    }
+
+    #[test]
+    fn a_bounded_mean_starts_where_configured_and_never_passes_its_bound() {
+        let mut config = RunConfig::default().copo;
+        config.max_mean_deg = 20.0;
+        config.initial_mean_deg = 10.0;
+        let copo = CopoLcf::new(&config, GlobalReturn::Agent, Device::Cpu);
+        assert!((copo.distribution().unwrap().mean_deg - 10.0).abs() < 1e-4);
+        // The same steps take CoPO's unbounded μ well past 20°; the bounded one stays within.
+        let unbounded = mean_after_large_meta_steps(90.0, 4);
+        let bounded = mean_after_large_meta_steps(20.0, 4);
+        assert!(unbounded.abs() > 30.0, "μ moved only to {unbounded}°");
+        assert!(
+            bounded.abs() <= 20.0 + 1e-4,
+            "μ = {bounded}° past its 20° bound"
+        );
+        assert!(
+            bounded.abs() > 15.0,
+            "μ = {bounded}°: the meta step did not move it"
         );
     }
 }

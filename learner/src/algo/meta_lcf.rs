@@ -230,6 +230,7 @@ mod tests {
     use super::*;
     use crate::algo::copo::{coordinated_advantage, reparameterised_phi};
     use junction_common::fragment::RolloutFragment;
+    use junction_common::lcf::MAX_PHI_DEG;
     use tch::Kind;
 
     const F64: (Kind, Device) = (Kind::Double, Device::Cpu);
@@ -290,7 +291,7 @@ mod tests {
     impl Problem {
         fn coordinated(&self, psi: &Tensor) -> Tensor {
             coordinated_advantage(
-                &reparameterised_phi(psi, &self.noise),
+                &reparameterised_phi(psi, &self.noise, f64::from(MAX_PHI_DEG)),
                 &self.individual,
                 &self.neighbourhood,
             ) / self.scale
