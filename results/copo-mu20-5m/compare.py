@@ -1,0 +1,46 @@
+"""CoPO ablation arms against the 5 M grid's CoPO and IPPO on the intersection, same seeds 1–3,
+same defaults and budget: training windows (MetaDrive's success) at 2 / 3 / 4 M and at the end,
+the best window, crash and timeout at the end, μ at 2 M and at the end, the training agent
+episode's mean length, then each arm minus IPPO and minus CoPO seed by seed.
+
+    python3 results/copo-mu20-5m/compare.py "μ ≤ 20°=results/copo-mu20-5m/runs/mu20-s" \
+        "meta step × 20/90=results/copo-metalr-5m/runs/metalr-s"
+
+(run from the repository root; each argument is label=run-directory prefix before the seed).
+"""
+import json, math, statistics as st, sys
+T={1:12.706,2:4.303,3:3.182,4:2.776}
+def ci(v):
+    m=st.mean(v); return m, (T[len(v)-1]*st.stdev(v)/math.sqrt(len(v)) if len(v)>1 else float('nan'))
+def f(v,signed=False):
+    m,h=ci(v); return (f"{m:+.2f}" if signed else f"{m:.2f}")+f" ± {h:.2f}"
+def prog(path): return [json.loads(l) for l in open(path)]
+def at(ps,m):
+    q=[p for p in ps if p['agent_steps']<=m]; return q[-1]
+arms=sys.argv[1:]  # label=dir/runs/prefix
+grid='results/grid-5m/runs'
+rows={}
+print('| arm | 2 M | 3 M | 4 M | 5 M | best by 5 M | crash at 5 M | timeout at 5 M | μ at 2 M / 5 M | steps per agent |')
+print('|---|---|---|---|---|---|---|---|---|---|')
+for spec in arms+[f"CoPO (grid)={grid}/copo-intersection-s", f"IPPO (grid)={grid}/ippo-intersection-s"]:
+    label,prefix=spec.split('=')
+    ps=[prog(f"{prefix}{s}/progress.jsonl") for s in (1,2,3)]
+    rows[label]=ps
+    cells=[]
+    for m in (2e6,3e6,4e6):
+        cells.append(f([at(p,m)['scene_window']['success_rate'] for p in ps]))
+    cells.append(f([p[-1]['scene_window']['success_rate'] for p in ps]))
+    best=f([max(q['scene_window']['success_rate'] for q in p) for p in ps])
+    last=[p[-1]['scene_window'] for p in ps]
+    mu=", ".join(f"{p[-1]['lcf']['mean_deg']:.0f}°" for p in ps)
+    mu2=", ".join(f"{at(p,2e6)['lcf']['mean_deg']:.0f}°" for p in ps)
+    length=f"{st.mean(p[-1]['window']['mean_length'] for p in ps):.0f}"
+    print(f"| {label} | "+" | ".join(cells)+f" | {best} | {f([w['crash_rate'] for w in last])} | {f([w['timeout_rate'] for w in last])} | {mu2} / {mu} | {length} |")
+print()
+base=rows["IPPO (grid)"]; copo=rows["CoPO (grid)"]
+for label,ps in rows.items():
+    if 'grid' in label: continue
+    for name,b in (("IPPO",base),("CoPO",copo)):
+        ds=[p[-1]['scene_window']['success_rate']-q[-1]['scene_window']['success_rate'] for p,q in zip(ps,b)]
+        dc=[p[-1]['scene_window']['crash_rate']-q[-1]['scene_window']['crash_rate'] for p,q in zip(ps,b)]
+        print(f"{label} − {name} at 5 M: success {f(ds,True)} ({', '.join(f'{d:+.2f}' for d in ds)}), crash {f(dc,True)} ({', '.join(f'{d:+.2f}' for d in dc)})")
