@@ -21,7 +21,8 @@
 //! Defaults (`[copo]`) are CoPO's but one: μ from 0°, σ from 0.1 of its 90° unit (9°), 5 passes,
 //! μ within ±90° (`max_mean_deg`: μ = max_mean_deg·tanh ψ_0, so a tighter bound keeps the
 //! meta-gradient smooth up to it, as the dynamic LCF's `max_phi_deg` does); Adam at 2.2e-5, not
-//! CoPO's 1e-4, at which μ outran the policy and the agents learned to wait (RESULTS.md). CoPO redraws fresh φ for the meta-gradient; reparameterising the agents' own draws
+//! CoPO's 1e-4, at which μ outran the policy and the agents learned to wait (RESULTS.md).
+//! CoPO redraws fresh φ for the meta-gradient; reparameterising the agents' own draws
 //! differentiates the same expectation at the samples the update used.
 
 use std::borrow::Cow;
