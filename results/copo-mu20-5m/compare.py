@@ -1,4 +1,4 @@
-"""CoPO ablation arms against the 5 M grid's CoPO and IPPO on the intersection, same seeds 1–3,
+"""CoPO ablation arms against the 5 M grid's CoPO and IPPO of one scene, same seeds 1–3,
 same defaults and budget: training windows (MetaDrive's success) at 2 / 3 / 4 M and at the end,
 the best window, crash and timeout at the end, μ at 2 M and at the end, the training agent
 episode's mean length, then each arm minus IPPO and minus CoPO seed by seed.
@@ -6,7 +6,8 @@ episode's mean length, then each arm minus IPPO and minus CoPO seed by seed.
     python3 results/copo-mu20-5m/compare.py "μ ≤ 20°=results/copo-mu20-5m/runs/mu20-s" \
         "meta step × 20/90=results/copo-metalr-5m/runs/metalr-s"
 
-(run from the repository root; each argument is label=run-directory prefix before the seed).
+(run from the repository root; each argument is label=run-directory prefix before the seed;
+a first argument scene=roundabout compares with the grid's roundabout runs instead).
 """
 import json, math, statistics as st, sys
 T={1:12.706,2:4.303,3:3.182,4:2.776}
@@ -18,11 +19,14 @@ def prog(path): return [json.loads(l) for l in open(path)]
 def at(ps,m):
     q=[p for p in ps if p['agent_steps']<=m]; return q[-1]
 arms=sys.argv[1:]  # label=dir/runs/prefix
+scene='intersection'
+if arms and arms[0].startswith('scene='):
+    scene=arms.pop(0).split('=',1)[1]
 grid='results/grid-5m/runs'
 rows={}
 print('| arm | 2 M | 3 M | 4 M | 5 M | best by 5 M | crash at 5 M | timeout at 5 M | μ at 2 M / 5 M | steps per agent |')
 print('|---|---|---|---|---|---|---|---|---|---|')
-for spec in arms+[f"CoPO (grid)={grid}/copo-intersection-s", f"IPPO (grid)={grid}/ippo-intersection-s"]:
+for spec in arms+[f"CoPO (grid)={grid}/copo-{scene}-s", f"IPPO (grid)={grid}/ippo-{scene}-s"]:
     label,prefix=spec.split('=')
     ps=[prog(f"{prefix}{s}/progress.jsonl") for s in (1,2,3)]
     rows[label]=ps
