@@ -15,6 +15,7 @@ import csv
 import json
 import math
 import sys
+import tomllib
 from pathlib import Path
 
 # Two-sided 95 % quantiles of Student's t by degrees of freedom (tables; no scipy here).
@@ -81,9 +82,8 @@ def read_eval(run_dir, scene, seed, actions):
 
 def last_stage_start(run_dir, budget):
     """CL's last stage (all agents) starts at the second-to-last curriculum fraction."""
-    text = (run_dir / "config.toml").read_text()
-    block = text.split("[curriculum]", 1)[1].split("]", 1)[0]
-    stages = [float(v) for v in block.split("[", 1)[1].replace("\n", "").split(",") if v.strip()]
+    with open(run_dir / "config.toml", "rb") as f:
+        stages = tomllib.load(f)["curriculum"]["stages"]
     return stages[-2] * budget if len(stages) > 1 else 0.0
 
 

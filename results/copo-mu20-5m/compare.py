@@ -9,13 +9,22 @@ episode's mean length, then each arm minus IPPO and minus CoPO seed by seed.
 (run from the repository root; each argument is label=run-directory prefix before the seed;
 a first argument scene=roundabout compares with the grid's roundabout runs instead).
 """
-import json, math, statistics as st, sys
-T={1:12.706,2:4.303,3:3.182,4:2.776}
-def ci(v):
-    m=st.mean(v); return m, (T[len(v)-1]*st.stdev(v)/math.sqrt(len(v)) if len(v)>1 else float('nan'))
-def f(v,signed=False):
-    m,h=ci(v); return (f"{m:+.2f}" if signed else f"{m:.2f}")+f" ± {h:.2f}"
-def prog(path): return [json.loads(l) for l in open(path)]
+import importlib.util
+import statistics as st
+import sys
+from pathlib import Path
+
+# The interval arithmetic of the grid's tables (scripts/grid-tables.py), not a second copy.
+_spec = importlib.util.spec_from_file_location(
+    "grid_tables", Path(__file__).resolve().parents[2] / "scripts" / "grid-tables.py")
+grid_tables = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(grid_tables)
+
+
+def f(values, signed=False):
+    return grid_tables.fmt(values, signed=signed)
+
+
 def at(ps,m):
     q=[p for p in ps if p['agent_steps']<=m]; return q[-1]
 arms=sys.argv[1:]  # label=dir/runs/prefix
@@ -28,7 +37,7 @@ print('| arm | 2 M | 3 M | 4 M | 5 M | best by 5 M | crash at 5 M | timeout at 5
 print('|---|---|---|---|---|---|---|---|---|---|')
 for spec in arms+[f"CoPO (grid)={grid}/copo-{scene}-s", f"IPPO (grid)={grid}/ippo-{scene}-s"]:
     label,prefix=spec.split('=')
-    ps=[prog(f"{prefix}{s}/progress.jsonl") for s in (1,2,3)]
+    ps=[grid_tables.read_progress(Path(f"{prefix}{s}")) for s in (1,2,3)]
     rows[label]=ps
     cells=[]
     for m in (2e6,3e6,4e6):
