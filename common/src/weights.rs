@@ -24,6 +24,8 @@ pub enum WeightsError {
     NonFinite { name: String },
     #[error("metadata {key:?} is missing or invalid")]
     Metadata { key: String },
+    #[error("the checkpoint does not fit this run's configuration: {0}")]
+    Mismatch(String),
     #[error("torch: {0}")]
     Torch(#[from] tch::TchError),
 }
@@ -80,6 +82,18 @@ pub fn metadata(bytes: &[u8]) -> Result<BTreeMap<String, String>, WeightsError> 
             key: METADATA_KEY.to_string(),
         }),
         None => Ok(BTreeMap::new()),
+    }
+}
+
+impl WeightsError {
+    /// Whether the blob is sound but was written for another configuration (a tensor missing
+    /// or of another shape, a learned quantity outside this run's bounds), as opposed to
+    /// damaged bytes: restoring it under the configuration it came from would work.
+    pub fn is_configuration_mismatch(&self) -> bool {
+        matches!(
+            self,
+            WeightsError::Missing(_) | WeightsError::Shape { .. } | WeightsError::Mismatch(_)
+        )
     }
 }
 

@@ -408,9 +408,6 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         );
     }
 
-    std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
-    write_atomically(&saved_config, config.to_toml().as_bytes())?;
-
     if config.learner.torch_threads > 0 {
         tch::set_num_threads(config.learner.torch_threads as i32);
     }
@@ -424,6 +421,10 @@ async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             0,
         ),
     };
+    // Written once the checkpoint has restored: a resume refused for its configuration leaves
+    // the run's own config.toml, the one a plain `--resume` reads back.
+    std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
+    write_atomically(&saved_config, config.to_toml().as_bytes())?;
 
     // The stage follows from the restored agent-steps: a resumed run continues in its stage.
     let stage = algorithm.stage(progress.agent_steps, config.scenario.agent_count());
@@ -602,7 +603,7 @@ fn restore_newest(
                 tracing::info!(path = %path.display(), version = meta.version, "resumed");
                 return Ok((algorithm, Progress::from(&meta), meta.actors_registered));
             }
-            // A checkpoint of another algorithm or layout is a configuration error, not damage.
+            // A checkpoint of another algorithm, layout or configuration is an error, not damage.
             Err(RestoreError::Incompatible(e)) => return Err(e),
             Err(RestoreError::Damaged(e)) => {
                 let moved = Checkpointer::set_aside(path)
@@ -658,8 +659,18 @@ fn restore(
         .map_err(damaged)?;
     algorithm
         .restore(&checkpoint.policy, &mut state)
-        .with_context(|| format!("restoring from {}", path.display()))
-        .map_err(damaged)?;
+        .map_err(|e| {
+            let mismatch = e.is_configuration_mismatch();
+            let e = anyhow::Error::new(e).context(format!("restoring from {}", path.display()));
+            match mismatch {
+                // Setting it aside would discard a sound run over a changed flag.
+                true => RestoreError::Incompatible(e.context(
+                    "the checkpoint was written under another configuration: resume without the \
+                     --config or --set that changes it (a resumed run reads its own config.toml)",
+                )),
+                false => RestoreError::Damaged(e),
+            }
+        })?;
     Ok(meta)
 }
 

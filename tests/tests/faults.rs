@@ -1,12 +1,13 @@
 //! Faults with real processes on loopback: an actor killed mid-stream, a learner killed and
 //! resumed on its port while its actors wait, a learner killed in the middle of writing a
-//! checkpoint. Every process is stopped when a test ends, however it ends.
+//! checkpoint, a resume under a configuration that does not fit. Every process is stopped when
+//! a test ends, however it ends.
 
 use std::time::Duration;
 
 use junction_tests::{
-    Endpoints, Process, QUICK_RUN, TempDir, checkpoint_versions, free_port, metric_sum, scrape,
-    start_actor, start_learner, start_learner_with_env, wait_until,
+    Endpoints, Process, QUICK_RUN, TempDir, bin, checkpoint_versions, free_port, metric_sum,
+    scrape, start_actor, start_learner, start_learner_with_env, unique_shm_name, wait_until,
 };
 
 fn gauge(endpoints: &Endpoints, name: &str) -> f64 {
@@ -239,6 +240,45 @@ fn a_learner_killed_while_writing_a_checkpoint_resumes_from_the_previous_one() {
     assert!(learner.wait_exit(Duration::from_secs(60)).is_some());
     assert!(actor.wait_exit(Duration::from_secs(30)).is_some());
     let complete = *checkpoint_versions(&run_dir).last().expect("a checkpoint");
+
+    // A resume whose configuration does not fit the checkpoint (another network size) is
+    // refused with a clear error, and every checkpoint stays where it was: a sound run is not
+    // set aside as damaged over a changed flag.
+    let shm_name = unique_shm_name();
+    let misfit_args = [
+        "serve",
+        "--resume",
+        &run,
+        "--addr",
+        "127.0.0.1:0",
+        "--metrics-addr",
+        "127.0.0.1:0",
+        "--device",
+        "cpu",
+        "--shm-name",
+        &shm_name,
+        "--set",
+        "ppo.hidden=[24]",
+    ]
+    .map(String::from);
+    let mut misfit = Process::start("learner-misfit", &bin("learner"), &misfit_args, dir.path());
+    let status = misfit.wait_exit(Duration::from_secs(60));
+    assert!(
+        status.is_some_and(|s| !s.success()),
+        "{status:?}\n{}",
+        misfit.log_tail(20)
+    );
+    assert!(
+        misfit.log().contains("another configuration"),
+        "{}",
+        misfit.log_tail(20)
+    );
+    assert_eq!(checkpoint_versions(&run_dir).last(), Some(&complete));
+    let set_aside = std::fs::read_dir(run_dir.join("checkpoints"))
+        .unwrap()
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().starts_with("damaged-"));
+    assert!(!set_aside, "a sound checkpoint was set aside as damaged");
 
     // Resume with the test hook that stalls every checkpoint after its first file: the next
     // checkpoint is caught half-written.

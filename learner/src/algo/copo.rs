@@ -47,6 +47,9 @@ const NEIGHBOURHOOD: usize = 1;
 const GLOBAL: usize = 2;
 const PARAMS_KEY: &str = "copo.lcf_params";
 const ADAM_KEY: &str = "copo.lcf_adam";
+/// μ_max the saved ψ_0 was learned under; a checkpoint without it was written at 90°, before
+/// the bound could be set.
+const MAX_MEAN_KEY: &str = "copo.max_mean_deg";
 /// ε of the meta-gradient's Adam (PyTorch's default, which CoPO uses).
 pub const META_ADAM_EPS: f64 = 1e-8;
 
@@ -225,13 +228,46 @@ impl Coordination for CopoLcf {
     }
 
     fn state_tensors(&self) -> Vec<(String, Tensor)> {
-        let mut state = vec![(PARAMS_KEY.to_string(), self.params.detach().copy())];
+        let mut state = vec![
+            (PARAMS_KEY.to_string(), self.params.detach().copy()),
+            (
+                MAX_MEAN_KEY.to_string(),
+                Tensor::from_slice(&[self.max_mean_deg as f32]),
+            ),
+        ];
         state.extend(self.adam.state(ADAM_KEY));
         state
     }
 
+    /// Keeps the checkpoint's μ when this run bounds μ differently (ψ_0 re-expressed under
+    /// the new bound), so continuing a run under another `max_mean_deg` does not silently
+    /// rescale what it learned; a μ outside the new bound is refused.
     fn restore(&mut self, state: &mut Decoded) -> Result<(), WeightsError> {
         let params = state.take(PARAMS_KEY, &[2])?;
+        let saved_bound = match state.tensors.contains_key(MAX_MEAN_KEY) {
+            true => f64::try_from(state.take(MAX_MEAN_KEY, &[1])?.sum(Kind::Float))?,
+            false => f64::from(MAX_PHI_DEG),
+        };
+        let params = if saved_bound == self.max_mean_deg {
+            params
+        } else {
+            let mean_deg = f64::try_from(params.get(0).tanh())? * saved_bound;
+            if mean_deg.abs() >= self.max_mean_deg {
+                return Err(WeightsError::Mismatch(format!(
+                    "CoPO's μ is {mean_deg:.1}° in the checkpoint, outside this run's bound \
+                     copo.max_mean_deg = {}°; resume with --set copo.max_mean_deg={saved_bound}",
+                    self.max_mean_deg
+                )));
+            }
+            let psi_0 = (mean_deg / self.max_mean_deg).atanh();
+            tracing::info!(
+                mean_deg,
+                from_bound_deg = saved_bound,
+                to_bound_deg = self.max_mean_deg,
+                "CoPO's μ kept across a changed copo.max_mean_deg"
+            );
+            Tensor::from_slice(&[psi_0 as f32, f64::try_from(params.get(1))? as f32])
+        };
         self.adam.load_state(ADAM_KEY, state)?;
         tch::no_grad(|| self.params.copy_(&params.to_device(self.params.device())));
         Ok(())
@@ -421,6 +457,56 @@ mod tests {
                 .lcf_mean_deg as f32;
         }
         mean
+    }
+
+    /// CoPO's state at μ = `mean_deg` under the bound `max_mean_deg`, through the checkpoint
+    /// format, without the saved bound when `drop_bound`.
+    fn saved_state(max_mean_deg: f32, mean_deg: f32, drop_bound: bool) -> Decoded {
+        let mut config = RunConfig::default().copo;
+        config.max_mean_deg = max_mean_deg;
+        config.initial_mean_deg = mean_deg;
+        let state = CopoLcf::new(&config, GlobalReturn::Agent, Device::Cpu).state_tensors();
+        let refs: Vec<(String, &Tensor)> = state
+            .iter()
+            .filter(|(name, _)| !(drop_bound && name == MAX_MEAN_KEY))
+            .map(|(name, t)| (name.clone(), t))
+            .collect();
+        Decoded::decode(&junction_common::weights::encode(&refs, Default::default()).unwrap())
+            .unwrap()
+    }
+
+    fn bounded_at(max_mean_deg: f32) -> CopoLcf {
+        let mut config = RunConfig::default().copo;
+        config.max_mean_deg = max_mean_deg;
+        CopoLcf::new(&config, GlobalReturn::Agent, Device::Cpu)
+    }
+
+    #[test]
+    fn a_checkpoint_keeps_its_mean_under_another_bound_or_is_refused() {
+        let mut tighter = bounded_at(20.0);
+        tighter
+            .restore(&mut saved_state(90.0, 12.0, false))
+            .unwrap();
+        let kept = tighter.distribution().unwrap();
+        assert!(
+            (kept.mean_deg - 12.0).abs() < 1e-3,
+            "μ = {}°",
+            kept.mean_deg
+        );
+        assert!((kept.std_deg - 9.0).abs() < 1e-3, "σ = {}°", kept.std_deg);
+        // Before the bound was saved every checkpoint had CoPO's 90°.
+        let mut from_old = bounded_at(20.0);
+        from_old
+            .restore(&mut saved_state(90.0, 12.0, true))
+            .unwrap();
+        assert!((from_old.distribution().unwrap().mean_deg - 12.0).abs() < 1e-3);
+        let err = bounded_at(20.0)
+            .restore(&mut saved_state(90.0, 30.0, false))
+            .unwrap_err();
+        assert!(
+            matches!(err, WeightsError::Mismatch(_)) && err.to_string().contains("max_mean_deg=90"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -54,6 +54,8 @@ use crate::optim::Adam;
 const COORDINATED: usize = 0;
 const GLOBAL: usize = 1;
 const ADAM_KEY: &str = "dynamic_lcf.adam";
+/// The bound φ was learned under (checkpoints from before it was saved are taken as they are).
+const MAX_PHI_KEY: &str = "dynamic_lcf.max_phi_deg";
 
 /// φ in degrees for rows of neighbourhood features [m, FEATURES], within ±`max_deg`; 0 where
 /// the first feature (the neighbour count) is 0.
@@ -275,11 +277,27 @@ impl Coordination for DynamicLcf {
 
     fn state_tensors(&self) -> Vec<(String, Tensor)> {
         let mut state = weights::var_store_tensors(&self.store);
+        state.push((
+            MAX_PHI_KEY.to_string(),
+            Tensor::from_slice(&[self.max_phi_deg as f32]),
+        ));
         state.extend(self.adam.state(ADAM_KEY));
         state
     }
 
+    /// Refuses a checkpoint learned under another `max_phi_deg`: the same f_ψ would give every
+    /// neighbourhood a φ scaled by the ratio of the bounds, and no change of f_ψ undoes that.
     fn restore(&mut self, state: &mut Decoded) -> Result<(), WeightsError> {
+        if state.tensors.contains_key(MAX_PHI_KEY) {
+            let saved = f64::try_from(state.take(MAX_PHI_KEY, &[1])?.sum(Kind::Float))?;
+            if saved != self.max_phi_deg {
+                return Err(WeightsError::Mismatch(format!(
+                    "the dynamic LCF's φ was learned within ±{saved}°, this run bounds it at \
+                     dynamic_lcf.max_phi_deg = {}°; resume with --set dynamic_lcf.max_phi_deg={saved}",
+                    self.max_phi_deg
+                )));
+            }
+        }
         weights::load_var_store(&self.store, state)?;
         self.adam.load_state(ADAM_KEY, state)
     }
@@ -374,6 +392,33 @@ mod tests {
         let lone = report.by_neighbours[0].unwrap();
         assert_eq!(lone, 0.0, "φ = 0 without neighbours");
         assert!((report.by_neighbours[1].unwrap() - 30.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn a_checkpoint_learned_under_another_bound_is_refused() {
+        let lcf = RunConfig::default().lcf;
+        let bounded_at = |max_phi_deg| {
+            let mut config = RunConfig::default().dynamic_lcf;
+            config.max_phi_deg = max_phi_deg;
+            DynamicLcf::new(&config, &lcf, Device::Cpu)
+        };
+        let saved = |drop_bound: bool| {
+            let state = bounded_at(45.0).state_tensors();
+            let refs: Vec<(String, &Tensor)> = state
+                .iter()
+                .filter(|(name, _)| !(drop_bound && name == MAX_PHI_KEY))
+                .map(|(name, t)| (name.clone(), t))
+                .collect();
+            Decoded::decode(&weights::encode(&refs, Default::default()).unwrap()).unwrap()
+        };
+        bounded_at(45.0).restore(&mut saved(false)).unwrap();
+        let err = bounded_at(20.0).restore(&mut saved(false)).unwrap_err();
+        assert!(
+            matches!(err, WeightsError::Mismatch(_)) && err.to_string().contains("max_phi_deg=45"),
+            "{err}"
+        );
+        // A checkpoint from before the bound was saved restores as it always did.
+        bounded_at(20.0).restore(&mut saved(true)).unwrap();
     }
 
     #[test]
