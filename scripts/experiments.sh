@@ -160,6 +160,11 @@ for entry in "${runs[@]}"; do
     if [ "${RESUME:-0}" = 1 ] && compgen -G "$run_dir/checkpoints/ckpt-*" >/dev/null; then
         continuing=1
     fi
+    # A continued run's train_s adds what its earlier invocations spent (their last row).
+    earlier_train_s=0
+    if [ "$continuing" = 1 ] && [ -f "$previous" ]; then
+        earlier_train_s=$(awk -F'\t' -v d="$run_dir" '$8 == d && $5 != "" { s = $5 } END { print s + 0 }' "$previous")
+    fi
     say "[$done_count/$total] $method on $scene, seed $seed$eta$([ "$continuing" = 1 ] && echo ", continuing from its newest checkpoint")"
     run_start=$(date +%s)
     mkdir -p "$run_dir"
@@ -197,6 +202,7 @@ for entry in "${runs[@]}"; do
         eval_s=$(($(date +%s) - eval_start))
         good_runs+=("$run_dir")
     fi
+    train_s=$((train_s + earlier_train_s))
     say "[$done_count/$total] $status: ${steps:-0} agent-steps, training ${train_s} s, eval ${eval_s:-–} s"
     printf '%s\t%s\t%s\t%s\t%s\t%s\t%s\t%s\n' "$method" "$scene" "$seed" "$status" \
         "$train_s" "$eval_s" "${steps:-0}" "$run_dir" >>"$grid"

@@ -99,9 +99,17 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
 
     // A session that ended mid-training leaves checkpoints and no evaluation: RESUME=1
     // continues that run from its checkpoint and starts a seed it has not run.
+    // Its row says an earlier invocation trained it 1000 s before it was interrupted.
     let grid_tsv = std::fs::read_to_string(out.join("grid.tsv")).unwrap();
     let header = grid_tsv.lines().next().unwrap();
-    std::fs::write(out.join("grid.tsv"), format!("{header}\n")).unwrap();
+    let run_dir_column = grid_tsv.lines().nth(1).unwrap().split('\t').nth(7).unwrap();
+    std::fs::write(
+        out.join("grid.tsv"),
+        format!(
+            "{header}\nippo\ttiny-straight\t4\tinterrupted during training\t1000\t\t0\t{run_dir_column}\n"
+        ),
+    )
+    .unwrap();
     std::fs::remove_dir_all(run.join("eval")).unwrap();
     let log = grid(&out, dir.path(), "continue", "4 5", true);
     assert!(
@@ -114,6 +122,15 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     );
     let grid_tsv = std::fs::read_to_string(out.join("grid.tsv")).unwrap();
     assert_eq!(grid_tsv.matches("\tok\t").count(), 2, "{grid_tsv}");
+    let continued_train_s: u64 = grid_tsv
+        .lines()
+        .find(|row| row.starts_with("ippo\ttiny-straight\t4\t"))
+        .and_then(|row| row.split('\t').nth(4)?.parse().ok())
+        .unwrap();
+    assert!(
+        continued_train_s >= 1000,
+        "train_s {continued_train_s} leaves out the earlier invocation's 1000 s"
+    );
     assert!(run.join("eval/eval-tiny-straight-seed1000.json").is_file());
     let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
     assert!(train_log.contains("learner: resumed path="), "{train_log}");
