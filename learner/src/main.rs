@@ -662,13 +662,14 @@ fn restore(
         .map_err(|e| {
             let mismatch = e.is_configuration_mismatch();
             let e = anyhow::Error::new(e).context(format!("restoring from {}", path.display()));
-            match mismatch {
+            if mismatch {
                 // Setting it aside would discard a sound run over a changed flag.
-                true => RestoreError::Incompatible(e.context(
+                RestoreError::Incompatible(e.context(
                     "the checkpoint was written under another configuration: resume without the \
                      --config or --set that changes it (a resumed run reads its own config.toml)",
-                )),
-                false => RestoreError::Damaged(e),
+                ))
+            } else {
+                RestoreError::Damaged(e)
             }
         })?;
     Ok(meta)

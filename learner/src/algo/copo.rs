@@ -244,9 +244,10 @@ impl Coordination for CopoLcf {
     /// rescale what it learned; a μ outside the new bound is refused.
     fn restore(&mut self, state: &mut Decoded) -> Result<(), WeightsError> {
         let params = state.take(PARAMS_KEY, &[2])?;
-        let saved_bound = match state.tensors.contains_key(MAX_MEAN_KEY) {
-            true => f64::try_from(state.take(MAX_MEAN_KEY, &[1])?.sum(Kind::Float))?,
-            false => f64::from(MAX_PHI_DEG),
+        let saved_bound = if state.tensors.contains_key(MAX_MEAN_KEY) {
+            f64::try_from(state.take(MAX_MEAN_KEY, &[1])?.sum(Kind::Float))?
+        } else {
+            f64::from(MAX_PHI_DEG)
         };
         let params = if saved_bound == self.max_mean_deg {
             params
