@@ -5,9 +5,9 @@
 1. The intersection: the discount study's evaluations (seeds 1-3, validation seed 777, mean
    action): MetaDrive's success and crash, timeouts per agent episode, steps per agent episode,
    arrivals and failures per 300 scene steps.
-2. The roundabout pilot (this directory, γ = 0.995) against the 5 M grid's runs of the same
+2. The roundabout arms (this directory, γ = 0.995) against the 5 M grid's runs of the same
    method and seed at γ = 0.999: the training window (MetaDrive's success, crash, timeout,
-   steps per agent episode) at 2.5 M and at the end, and evaluations on the validation seed
+   steps per agent episode) at 2.5 M and at the end, the same seed's differences, and evaluations on the validation seed
    (pilot) or the unseen seed 1000 (grid, as the grid evaluates).
 """
 import importlib.util
@@ -66,7 +66,7 @@ def training_cells(runs):
 
 
 def main():
-    seeds = [int(s) for s in sys.argv[1:]] or [1, 2]
+    seeds = [int(s) for s in sys.argv[1:]] or [1, 2, 3]
     print("Intersection, evaluated (seeds 1-3, validation seed 777, mean action):\n")
     print("| γ, budget | success | crash | timeout | steps per agent | arrivals per 300 steps | failures per 300 steps |")
     print("|---|---|---|---|---|---|---|")
@@ -81,6 +81,39 @@ def main():
         for gamma, pattern in (("0.999 (grid)", grid), ("0.995", pilot)):
             runs = [pattern.format(s) for s in seeds]
             print(f"| {method}, {gamma} | " + " | ".join(training_cells(runs)) + " |")
+
+    print()
+    for method, grid, pilot in PILOT:
+        pairs = [(grid.format(s), pilot.format(s)) for s in seeds]
+        if not all((ROOT / p / "progress.jsonl").exists() for pair in pairs for p in pair):
+            continue
+        low = [grid_tables.read_progress(ROOT / p) for _, p in pairs]
+        high = [grid_tables.read_progress(ROOT / g) for g, _ in pairs]
+        diff = lambda pick: fmt([pick(a) - pick(b) for a, b in zip(low, high)], signed=True)
+        print(f"{method}, 0.995 − 0.999 seed by seed: success at 2.5 M "
+              f"{diff(lambda p: window_at(p, 2_500_000)['scene_window']['success_rate'])}, at the end "
+              f"{diff(lambda p: p[-1]['scene_window']['success_rate'])}, crash at the end "
+              f"{diff(lambda p: p[-1]['scene_window']['crash_rate'])}, timeout at the end "
+              f"{diff(lambda p: p[-1]['scene_window']['timeout_rate'])}")
+
+    # Both arms here ran the same seeds and were evaluated on the same validation seed: pair them.
+    ippo_runs = [PILOT[0][2].format(s) for s in seeds]
+    dlcf_runs = [PILOT[1][2].format(s) for s in seeds]
+    if all((ROOT / r / "progress.jsonl").exists() for r in ippo_runs + dlcf_runs):
+        ippo_progress = [grid_tables.read_progress(ROOT / r)[-1] for r in ippo_runs]
+        dlcf_progress = [grid_tables.read_progress(ROOT / r)[-1] for r in dlcf_runs]
+        cells = [fmt([d["scene_window"][k] - i["scene_window"][k]
+                      for d, i in zip(dlcf_progress, ippo_progress)], signed=True)
+                 for k in ("success_rate", "crash_rate")]
+        for actions in ("mean", "sample"):
+            evals = [[grid_tables.read_eval(ROOT / r, "roundabout", 777, actions) for r in runs]
+                     for runs in (dlcf_runs, ippo_runs)]
+            if all(evals[0]) and all(evals[1]):
+                cells += [fmt([d["metrics"][k]["value"] - i["metrics"][k]["value"]
+                               for d, i in zip(*evals)], signed=True)
+                          for k in ("scene_success_rate", "scene_crash_rate")]
+        print("\nAt γ = 0.995, dynamic LCF − IPPO seed by seed (training success / crash at the end; "
+              "validation seed 777 mean action, then sampled, success / crash): " + " / ".join(cells))
 
     print(f"\nRoundabout, evaluated (seeds {', '.join(map(str, seeds))}; γ = 0.999 on the unseen seed 1000 "
           "as the grid evaluates, γ = 0.995 on the validation seed 777):\n")
