@@ -28,6 +28,9 @@
 #                    continues from its newest checkpoint to BUDGET agent-steps [none]
 # Resumable: a run whose evaluation exists is kept; a run without one is trained again.
 set -uo pipefail
+# The whole script is one block, read before any of it runs: editing this file while a long
+# run executes it cannot change what that run does next.
+{
 cd "$(dirname "$0")/.."
 
 : "${ARMS:?ARMS must name the arms file}" "${OUT:?OUT must name the results directory}"
@@ -116,3 +119,5 @@ fi
 say "report"
 "$BIN/learner" report --group-by-dir --methods "$(IFS=,; echo "${names[*]}")" \
     --eval-seeds "$EVAL_SEED" --out "$OUT/report" "$OUT/runs"
+exit
+}

@@ -35,6 +35,9 @@
 # A method this build does not have is skipped and reported; a run that fails is recorded
 # and the grid goes on. Ctrl-C stops the current run cleanly and reports what finished.
 set -uo pipefail
+# The whole script is one block, read before any of it runs: editing this file while a long
+# run executes it cannot change what that run does next.
+{
 cd "$(dirname "$0")/.."
 
 BIN=${BIN:-target/release}
@@ -267,3 +270,5 @@ fi
 
 say "done in $((wall / 60)) min: $OUT/RESULTS.md (grid $grid)"
 [ "$interrupted" = 0 ] && [ "$report_status" = 0 ]
+exit
+}
