@@ -47,8 +47,8 @@ const NEIGHBOURHOOD: usize = 1;
 const GLOBAL: usize = 2;
 const PARAMS_KEY: &str = "copo.lcf_params";
 const ADAM_KEY: &str = "copo.lcf_adam";
-/// μ_max the saved ψ_0 was learned under; a checkpoint without it was written at 90°, before
-/// the bound could be set.
+/// μ_max the saved ψ_0 was learned under; a checkpoint without it predates the key and is read
+/// as 90°, CoPO's unit (the few runs bounded before the key existed kept no checkpoints).
 const MAX_MEAN_KEY: &str = "copo.max_mean_deg";
 /// ε of the meta-gradient's Adam (PyTorch's default, which CoPO uses).
 pub const META_ADAM_EPS: f64 = 1e-8;
@@ -495,7 +495,7 @@ mod tests {
             kept.mean_deg
         );
         assert!((kept.std_deg - 9.0).abs() < 1e-3, "σ = {}°", kept.std_deg);
-        // Before the bound was saved every checkpoint had CoPO's 90°.
+        // A checkpoint from before the bound was saved is read as CoPO's 90°.
         let mut from_old = bounded_at(20.0);
         from_old
             .restore(&mut saved_state(90.0, 12.0, true))
