@@ -161,6 +161,27 @@ impl Process {
         None
     }
 
+    /// Waits up to `timeout` for the process to exit, and asserts that it failed and that its
+    /// log says each of `reasons`: how a refused start is checked.
+    pub fn assert_fails_saying(&mut self, timeout: Duration, reasons: &[&str]) {
+        let status = self.wait_exit(timeout);
+        assert!(
+            status.is_some_and(|s| !s.success()),
+            "{} did not fail: {status:?}\n{}",
+            self.name,
+            self.log_tail(20)
+        );
+        let log = self.log();
+        for reason in reasons {
+            assert!(
+                log.contains(reason),
+                "{} does not say {reason:?}\n{}",
+                self.name,
+                self.log_tail(20)
+            );
+        }
+    }
+
     /// SIGTERM, then SIGKILL after `grace`; returns the exit status.
     pub fn stop(&mut self, grace: Duration) -> Option<ExitStatus> {
         if let Some(status) = self.try_exit() {

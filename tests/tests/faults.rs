@@ -262,17 +262,7 @@ fn a_learner_killed_while_writing_a_checkpoint_resumes_from_the_previous_one() {
     ]
     .map(String::from);
     let mut misfit = Process::start("learner-misfit", &bin("learner"), &misfit_args, dir.path());
-    let status = misfit.wait_exit(Duration::from_secs(60));
-    assert!(
-        status.is_some_and(|s| !s.success()),
-        "{status:?}\n{}",
-        misfit.log_tail(20)
-    );
-    assert!(
-        misfit.log().contains("another configuration"),
-        "{}",
-        misfit.log_tail(20)
-    );
+    misfit.assert_fails_saying(Duration::from_secs(60), &["another configuration"]);
     assert_eq!(checkpoint_versions(&run_dir).last(), Some(&complete));
     let set_aside = std::fs::read_dir(run_dir.join("checkpoints"))
         .unwrap()

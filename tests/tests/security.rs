@@ -267,17 +267,9 @@ async fn mutual_tls_and_a_token_guard_every_rpc() {
         args[last] = wrong_path.clone();
         junction_tests::Process::start("intruder", &junction_tests::bin("actor"), &args, dir.path())
     });
-    let status = tokio::task::block_in_place(|| intruder.wait_exit(Duration::from_secs(30)));
-    assert!(
-        status.is_some_and(|s| !s.success()),
-        "the intruder did not fail: {status:?}\n{}",
-        intruder.log_tail(20)
-    );
-    assert!(
-        intruder.log().contains("wrong auth token"),
-        "{}",
-        intruder.log_tail(20)
-    );
+    tokio::task::block_in_place(|| {
+        intruder.assert_fails_saying(Duration::from_secs(30), &["wrong auth token"])
+    });
 
     let m = tokio::task::block_in_place(|| scrape(&endpoints.metrics));
     assert!(
@@ -309,12 +301,9 @@ fn an_actor_without_the_token_is_refused_and_says_why() {
         &[("JUNCTION_AUTH_TOKEN", TOKEN)],
     );
     let mut actor = start_actor(&endpoints, dir.path(), "actor", &[]);
-    let status = actor.wait_exit(Duration::from_secs(30));
-    assert!(status.is_some_and(|s| !s.success()), "{status:?}");
-    let log = actor.log();
-    assert!(
-        log.contains("Unauthenticated") && log.contains("missing auth token"),
-        "{log}"
+    actor.assert_fails_saying(
+        Duration::from_secs(30),
+        &["Unauthenticated", "missing auth token"],
     );
     learner.stop(Duration::from_secs(30));
 }
