@@ -2,8 +2,10 @@
 """The tables of RESULTS.md's grid section, from an experiment grid's run directories.
 
     scripts/grid-tables.py results/grid-5m > tables.md
+    scripts/grid-tables.py results/grid-5m results/seeds456-5m/* 1000   # more seeds, one table
 
-Reads OUT/grid.tsv (the runs `scripts/experiments.sh` finished) and, per run, progress.jsonl
+Reads each OUT/grid.tsv (the runs `scripts/experiments.sh` finished; several OUTs are read as
+one grid, so seeds added later in other directories join the same tables) and, per run, progress.jsonl
 and the evaluation JSON of `actor eval` (mean action, and sampled where present). Prints, in
 Markdown: every run's figures, Table 1 per scene, each method against IPPO of the same seed, and the training
 curves at CoPO's reference environment steps. `learner report` (the grid's report/) covers
@@ -100,7 +102,7 @@ class Run:
         start = last_stage_start(self.dir, self.budget) if self.method == "cl" else 0.0
         self.best = max(p["scene_window"]["success_rate"] for p in self.progress
                         if p["agent_steps"] >= start and p["scene_window"]["scene_episodes"] > 0)
-        self.phi = last.get("lcf", {}).get("mean_deg")
+        self.phi = (last.get("lcf") or {}).get("mean_deg")
         self.mean_eval = read_eval(self.dir, self.scene, eval_seed, "mean")
         self.sample_eval = read_eval(self.dir, self.scene, eval_seed, "sample")
 
@@ -235,11 +237,7 @@ def curves(runs, scenes):
     print()
 
 
-def main():
-    if len(sys.argv) < 2:
-        sys.exit("usage: scripts/grid-tables.py OUT [EVAL_SEED]   (OUT holds grid.tsv)")
-    root = Path(sys.argv[1])
-    eval_seed = int(sys.argv[2]) if len(sys.argv) > 2 else 1000
+def read_grid(root, eval_seed):
     grid = root / "grid.tsv"
     if not grid.exists():
         sys.exit(f"{grid} not found: run scripts/experiments.sh with OUT={root} first")
@@ -251,8 +249,25 @@ def main():
         # grid.tsv holds paths relative to the repository root; allow any working directory.
         if not run_dir.exists():
             run_dir = root / "runs" / run_dir.name
-        row = dict(row, run_dir=str(run_dir))
-        runs.append(Run(row, eval_seed))
+        runs.append(Run(dict(row, run_dir=str(run_dir)), eval_seed))
+    return runs
+
+
+def main():
+    args = sys.argv[1:]
+    eval_seed = int(args.pop()) if args and args[-1].isdigit() else 1000
+    if not args:
+        sys.exit("usage: scripts/grid-tables.py OUT [OUT ...] [EVAL_SEED]   (each OUT holds grid.tsv)")
+    runs, seen = [], {}
+    for root in map(Path, args):
+        for run in read_grid(root, eval_seed):
+            key = (run.method, run.scene, run.seed)
+            # The same run twice would count one seed as two in every interval.
+            if key in seen:
+                sys.exit(f"{run.method} on {run.scene}, seed {run.seed}, is in both {seen[key]} "
+                         f"and {root}: give each run once")
+            seen[key] = root
+            runs.append(run)
     scenes = [s for s in SCENE_AGENTS if any(r.scene == s for r in runs)]
     per_run(runs, eval_seed)
     for scene in scenes:

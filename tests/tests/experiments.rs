@@ -2,7 +2,8 @@
 //! this build lacks) × the tiny scenario × one seed, a budget of one update. Checks that the
 //! grid trains, evaluates, reports, skips the unknown method with a reason, and that RESUME
 //! keeps a finished run instead of training it again, continues a run stopped part-way from
-//! its checkpoint and starts the runs it has not seen.
+//! its checkpoint and starts the runs it has not seen. Then `scripts/grid-tables.py` reads the
+//! two seeds from two grid directories as one grid, and refuses a run given twice.
 
 use std::time::Duration;
 
@@ -134,4 +135,36 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     assert!(run.join("eval/eval-tiny-straight-seed1000.json").is_file());
     let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
     assert!(train_log.contains("learner: resumed path="), "{train_log}");
+
+    // Seeds added later live in another OUT: grid-tables.py reads both as one grid.
+    let header = grid_tsv.lines().next().unwrap();
+    for seed in ["4", "5"] {
+        let row = grid_tsv
+            .lines()
+            .find(|row| row.starts_with(&format!("ippo\ttiny-straight\t{seed}\t")))
+            .unwrap();
+        let part = dir.path().join(format!("seed{seed}"));
+        std::fs::create_dir_all(&part).unwrap();
+        std::fs::write(part.join("grid.tsv"), format!("{header}\n{row}\n")).unwrap();
+    }
+    let tables = |dirs: &[&str]| {
+        std::process::Command::new("python3")
+            .arg(workspace_root().join("scripts/grid-tables.py"))
+            .args(dirs.iter().map(|d| dir.path().join(d)))
+            .output()
+            .unwrap()
+    };
+    let both = tables(&["seed4", "seed5"]);
+    let stdout = String::from_utf8_lossy(&both.stdout);
+    assert!(both.status.success(), "{}", String::from_utf8_lossy(&both.stderr));
+    for text in ["| ippo-tiny-straight-s4 |", "| ippo-tiny-straight-s5 |"] {
+        assert!(stdout.contains(text), "the tables lack {text:?}:\n{stdout}");
+    }
+    let twice = tables(&["seed4", "seed4"]);
+    assert!(!twice.status.success());
+    assert!(
+        String::from_utf8_lossy(&twice.stderr).contains("ippo on tiny-straight, seed 4, is in both"),
+        "{}",
+        String::from_utf8_lossy(&twice.stderr)
+    );
 }
