@@ -136,8 +136,8 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
     assert!(train_log.contains("learner: resumed path="), "{train_log}");
 
-    // Seeds added later live in another OUT: grid-tables.py reads both as one grid.
-    let header = grid_tsv.lines().next().unwrap();
+    // Seeds added later live in another OUT: grid-tables.py reads both as one grid
+    // (`header` is the grid.tsv header read above).
     for seed in ["4", "5"] {
         let row = grid_tsv
             .lines()
