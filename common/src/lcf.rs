@@ -10,6 +10,7 @@ use std::collections::BTreeMap;
 use rand::Rng;
 use rand_distr::StandardNormal;
 
+use crate::config::{LcfConfig, NeighbourhoodReward};
 use crate::fragment::RolloutFragment;
 use crate::weights::WeightsError;
 
@@ -30,21 +31,20 @@ pub fn coordinated_reward(
 
 /// The reward each cell of `fragment` trains on under a fixed LCF angle (radians): the
 /// fragment's own rewards when the coordination changes nothing (φ = 0, α = 1).
-pub fn coordinated_rewards(
-    fragment: &RolloutFragment,
+pub fn coordinated_rewards<'f>(
+    fragment: &'f RolloutFragment,
     phi_rad: f32,
-    alpha: f32,
-    beta: f32,
-) -> Cow<'_, [f32]> {
-    if phi_rad == 0.0 && alpha == 1.0 {
+    lcf: &LcfConfig,
+) -> Cow<'f, [f32]> {
+    if phi_rad == 0.0 && lcf.alpha == 1.0 {
         return Cow::Borrowed(&fragment.rewards);
     }
-    let neighbourhood = neighbourhood_rewards(fragment);
+    let neighbourhood = neighbourhood_rewards(fragment, lcf.neighbourhood_reward);
     fragment
         .rewards
         .iter()
         .zip(neighbourhood)
-        .map(|(&own, n)| coordinated_reward(own, n, phi_rad, alpha, beta))
+        .map(|(&own, n)| coordinated_reward(own, n, phi_rad, lcf.alpha, lcf.beta))
         .collect()
 }
 
@@ -53,26 +53,28 @@ pub fn coordinated_rewards(
 pub fn coordinated_rewards_per_cell(
     fragment: &RolloutFragment,
     phi_rad: &[f32],
-    alpha: f32,
-    beta: f32,
+    lcf: &LcfConfig,
 ) -> Vec<f32> {
-    let neighbourhood = neighbourhood_rewards(fragment);
+    let neighbourhood = neighbourhood_rewards(fragment, lcf.neighbourhood_reward);
     fragment
         .rewards
         .iter()
         .zip(neighbourhood)
         .zip(phi_rad)
-        .map(|((&own, n), &phi)| coordinated_reward(own, n, phi, alpha, beta))
+        .map(|((&own, n), &phi)| coordinated_reward(own, n, phi, lcf.alpha, lcf.beta))
         .collect()
 }
 
 /// r_N per (step, slot) of a fragment: the mean reward of the neighbours that hold an agent at
-/// that step (0 when alone or for an empty cell).
-pub fn neighbourhood_rewards(fragment: &RolloutFragment) -> Vec<f32> {
+/// that step, centred over the fragment's agents with neighbours when `kind` says so (0 when
+/// alone or for an empty cell either way).
+pub fn neighbourhood_rewards(fragment: &RolloutFragment, kind: NeighbourhoodReward) -> Vec<f32> {
     let mut out = vec![0.0; fragment.steps * fragment.agents];
+    let mut with_neighbours = Vec::new();
     for t in 0..fragment.steps {
         for slot in 0..fragment.agents {
-            if !fragment.alive[fragment.index(t, slot)] {
+            let here = fragment.index(t, slot);
+            if !fragment.alive[here] {
                 continue;
             }
             let (mut sum, mut count) = (0.0f32, 0usize);
@@ -84,8 +86,19 @@ pub fn neighbourhood_rewards(fragment: &RolloutFragment) -> Vec<f32> {
                 }
             }
             if count > 0 {
-                out[fragment.index(t, slot)] = sum / count as f32;
+                out[here] = sum / count as f32;
+                with_neighbours.push(here);
             }
+        }
+    }
+    if kind == NeighbourhoodReward::Centred && !with_neighbours.is_empty() {
+        let mean = with_neighbours
+            .iter()
+            .map(|&c| f64::from(out[c]))
+            .sum::<f64>()
+            / with_neighbours.len() as f64;
+        for &cell in &with_neighbours {
+            out[cell] -= mean as f32;
         }
     }
     out
@@ -187,6 +200,16 @@ mod tests {
     use rand::SeedableRng;
     use std::f32::consts::FRAC_PI_2;
 
+    /// The paper's coordination with weights α, β.
+    fn weights(alpha: f32, beta: f32) -> LcfConfig {
+        LcfConfig {
+            alpha,
+            beta,
+            neighbourhood_reward: NeighbourhoodReward::Mean,
+            ..crate::config::RunConfig::default().lcf
+        }
+    }
+
     #[test]
     fn coordinated_reward_spans_selfish_to_cooperative() {
         // φ = 0: the agent's own reward (IPPO); φ = 90°: only the neighbourhood's.
@@ -214,15 +237,30 @@ mod tests {
             ..RolloutFragment::default()
         };
         assert_eq!(
-            neighbourhood_rewards(&fragment),
+            neighbourhood_rewards(&fragment, NeighbourhoodReward::Mean),
             vec![4.0, 1.0, 0.0, 5.0, 0.0, 0.0]
         );
+        // Centred: the three agents with neighbours average 10/3, which each gives up; the
+        // lone and the empty cells stay 0.
+        let centred = neighbourhood_rewards(&fragment, NeighbourhoodReward::Centred);
+        let third = 1.0 / 3.0;
+        let expected = [
+            4.0 - 10.0 * third,
+            1.0 - 10.0 * third,
+            0.0,
+            5.0 - 10.0 * third,
+            0.0,
+            0.0,
+        ];
+        for (got, want) in centred.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-5, "{centred:?}");
+        }
         // φ = 0, α = 1 trains on the own rewards untouched; φ = 90° on the neighbourhood's.
         assert!(matches!(
-            coordinated_rewards(&fragment, 0.0, 1.0, 1.0),
+            coordinated_rewards(&fragment, 0.0, &weights(1.0, 1.0)),
             Cow::Borrowed(r) if r == fragment.rewards.as_slice()
         ));
-        let cooperative = coordinated_rewards(&fragment, FRAC_PI_2, 1.0, 1.0);
+        let cooperative = coordinated_rewards(&fragment, FRAC_PI_2, &weights(1.0, 1.0));
         let expected = [4.0, 1.0, 0.0, 5.0, 0.0, 0.0];
         for (got, want) in cooperative.iter().zip(expected) {
             assert!((got - want).abs() < 1e-5, "{cooperative:?}");
@@ -234,7 +272,7 @@ mod tests {
             .iter()
             .map(|d| d.to_radians())
             .collect();
-        let per_cell = coordinated_rewards_per_cell(&fragment, &phi, 1.0, 0.5);
+        let per_cell = coordinated_rewards_per_cell(&fragment, &phi, &weights(1.0, 0.5));
         assert_eq!(per_cell[0], fragment.rewards[0]);
         let half_sqrt3 = 3.0f32.sqrt() / 2.0;
         let expected = [

@@ -465,6 +465,21 @@ pub struct LcfConfig {
     pub beta: f32,
     /// The global return the learned LCFs (copo, dynamic-lcf) climb.
     pub global_return: GlobalReturn,
+    /// What r_N pays an agent for having neighbours.
+    pub neighbourhood_reward: NeighbourhoodReward,
+}
+
+/// The neighbourhood reward r_N of an agent with neighbours.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum NeighbourhoodReward {
+    /// The paper's and CoPO's: the neighbours' mean reward. Positive on average, so under
+    /// φ > 0 every step spent among neighbours pays, and staying on the road longer does too.
+    Mean,
+    /// The neighbours' mean reward less its mean over every agent with neighbours in the same
+    /// fragment: being among neighbours is worth nothing in itself, their doing better than
+    /// neighbourhoods usually do is.
+    Centred,
 }
 
 /// Where an agent's global return (the scene's mean reward, step by step) ends.

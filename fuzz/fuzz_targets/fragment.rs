@@ -7,6 +7,7 @@ use libfuzzer_sys::fuzz_target;
 use prost::Message;
 
 use junction_common::fragment::RolloutFragment;
+use junction_common::config::RunConfig;
 use junction_common::{lcf, proto};
 
 fuzz_target!(|data: &[u8]| {
@@ -24,7 +25,7 @@ fuzz_target!(|data: &[u8]| {
         }
         // Every neighbour list is in bounds and every neighbour a slot (the learner indexes
         // rewards and observations with them).
-        let rewards = lcf::coordinated_rewards(&fragment, 0.7, 1.0, 1.0);
+        let rewards = lcf::coordinated_rewards(&fragment, 0.7, &RunConfig::default().lcf);
         assert_eq!(rewards.len(), fragment.steps * fragment.agents);
         // A valid fragment survives the trip back to the wire unchanged.
         let again = RolloutFragment::from_proto(fragment.clone().into_proto(), dims)

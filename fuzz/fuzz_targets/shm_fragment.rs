@@ -10,6 +10,7 @@ use std::sync::LazyLock;
 use libfuzzer_sys::fuzz_target;
 
 use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
+use junction_common::config::RunConfig;
 use junction_common::{lcf, shm_layout};
 
 /// 3 steps × 2 slots: slot 0's agent finishes at step 1 and a new one takes the slot.
@@ -68,7 +69,7 @@ fn check(bytes: &[u8]) {
                     let _ = fragment.needs_bootstrap(slot);
                 }
                 // Neighbour lists in bounds, neighbours real slots: the learner indexes with them.
-                let rewards = lcf::coordinated_rewards(&fragment, 0.7, 1.0, 1.0);
+                let rewards = lcf::coordinated_rewards(&fragment, 0.7, &RunConfig::default().lcf);
                 assert_eq!(rewards.len(), fragment.steps * fragment.agents);
                 let again = shm_layout::encode(&fragment).expect("an accepted fragment encodes");
                 assert_eq!(again, bytes, "accepted bytes must encode back unchanged");

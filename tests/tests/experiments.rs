@@ -156,14 +156,19 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     };
     let both = tables(&["seed4", "seed5"]);
     let stdout = String::from_utf8_lossy(&both.stdout);
-    assert!(both.status.success(), "{}", String::from_utf8_lossy(&both.stderr));
+    assert!(
+        both.status.success(),
+        "{}",
+        String::from_utf8_lossy(&both.stderr)
+    );
     for text in ["| ippo-tiny-straight-s4 |", "| ippo-tiny-straight-s5 |"] {
         assert!(stdout.contains(text), "the tables lack {text:?}:\n{stdout}");
     }
     let twice = tables(&["seed4", "seed4"]);
     assert!(!twice.status.success());
     assert!(
-        String::from_utf8_lossy(&twice.stderr).contains("ippo on tiny-straight, seed 4, is in both"),
+        String::from_utf8_lossy(&twice.stderr)
+            .contains("ippo on tiny-straight, seed 4, is in both"),
         "{}",
         String::from_utf8_lossy(&twice.stderr)
     );

@@ -140,8 +140,7 @@ impl Coordination for FixedLcf {
         Ok(lcf::coordinated_rewards(
             fragment,
             c.phi_deg.to_radians(),
-            c.alpha,
-            c.beta,
+            c,
         ))
     }
 

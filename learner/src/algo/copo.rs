@@ -30,7 +30,7 @@ use std::collections::BTreeMap;
 
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{CopoConfig, GlobalReturn};
+use junction_common::config::{CopoConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, LcfDistribution, MAX_PHI_DEG};
 use junction_common::weights::{Decoded, WeightsError};
@@ -94,10 +94,11 @@ pub struct CopoLcf {
     iterations: usize,
     cross_fit: bool,
     global_return: GlobalReturn,
+    neighbourhood_reward: NeighbourhoodReward,
 }
 
 impl CopoLcf {
-    pub fn new(config: &CopoConfig, global_return: GlobalReturn, device: Device) -> Self {
+    pub fn new(config: &CopoConfig, lcf: &LcfConfig, device: Device) -> Self {
         let start = [
             (config.initial_mean_deg / config.max_mean_deg).atanh(),
             (config.initial_std_deg / MAX_PHI_DEG).ln(),
@@ -111,7 +112,8 @@ impl CopoLcf {
             max_mean_deg: f64::from(config.max_mean_deg),
             iterations: config.meta_iterations,
             cross_fit: config.meta_cross_fit,
-            global_return,
+            global_return: lcf.global_return,
+            neighbourhood_reward: lcf.neighbourhood_reward,
         }
     }
 
@@ -153,7 +155,10 @@ impl Coordination for CopoLcf {
     ) -> Result<Cow<'f, [f32]>, AlgoError> {
         Ok(match index {
             INDIVIDUAL => Cow::Borrowed(fragment.rewards.as_slice()),
-            NEIGHBOURHOOD => Cow::Owned(lcf::neighbourhood_rewards(fragment)),
+            NEIGHBOURHOOD => Cow::Owned(lcf::neighbourhood_rewards(
+                fragment,
+                self.neighbourhood_reward,
+            )),
             _ => Cow::Owned(lcf::global_rewards(fragment)),
         })
     }
@@ -302,8 +307,20 @@ mod tests {
         Vec::<f32>::try_from(t.to_device(Device::Cpu)).unwrap()
     }
 
+    /// The default coordination with the global return ending as `global_return` says.
+    fn ending(global_return: GlobalReturn) -> LcfConfig {
+        LcfConfig {
+            global_return,
+            ..RunConfig::default().lcf
+        }
+    }
+
     fn coordination() -> CopoLcf {
-        CopoLcf::new(&RunConfig::default().copo, GlobalReturn::Agent, Device::Cpu)
+        CopoLcf::new(
+            &RunConfig::default().copo,
+            &ending(GlobalReturn::Agent),
+            Device::Cpu,
+        )
     }
 
     #[test]
@@ -312,7 +329,11 @@ mod tests {
         // the other five slots go on, so the scene's value after it is 2.
         let fragment = copo_fragment();
         let batch_of = |global_return| {
-            let copo = CopoLcf::new(&RunConfig::default().copo, global_return, Device::Cpu);
+            let copo = CopoLcf::new(
+                &RunConfig::default().copo,
+                &ending(global_return),
+                Device::Cpu,
+            );
             constant_critic_batch(&copo, &fragment, 2.0, 0.99, 0.0)
         };
         let (agent, scene) = (batch_of(GlobalReturn::Agent), batch_of(GlobalReturn::Scene));
@@ -394,7 +415,7 @@ mod tests {
         SharedPpo::new(
             "copo",
             OwnObservation,
-            Box::new(CopoLcf::new(&run.copo, run.lcf.global_return, Device::Cpu)),
+            Box::new(CopoLcf::new(&run.copo, &run.lcf, Device::Cpu)),
             &run,
             2,
             2,
@@ -466,7 +487,8 @@ mod tests {
         let mut config = RunConfig::default().copo;
         config.max_mean_deg = max_mean_deg;
         config.initial_mean_deg = mean_deg;
-        let state = CopoLcf::new(&config, GlobalReturn::Agent, Device::Cpu).state_tensors();
+        let state =
+            CopoLcf::new(&config, &ending(GlobalReturn::Agent), Device::Cpu).state_tensors();
         let refs: Vec<(String, &Tensor)> = state
             .iter()
             .filter(|(name, _)| !(drop_bound && name == MAX_MEAN_KEY))
@@ -479,7 +501,7 @@ mod tests {
     fn bounded_at(max_mean_deg: f32) -> CopoLcf {
         let mut config = RunConfig::default().copo;
         config.max_mean_deg = max_mean_deg;
-        CopoLcf::new(&config, GlobalReturn::Agent, Device::Cpu)
+        CopoLcf::new(&config, &ending(GlobalReturn::Agent), Device::Cpu)
     }
 
     #[test]
@@ -515,7 +537,7 @@ mod tests {
         let mut config = RunConfig::default().copo;
         config.max_mean_deg = 20.0;
         config.initial_mean_deg = 10.0;
-        let copo = CopoLcf::new(&config, GlobalReturn::Agent, Device::Cpu);
+        let copo = CopoLcf::new(&config, &ending(GlobalReturn::Agent), Device::Cpu);
         assert!((copo.distribution().unwrap().mean_deg - 10.0).abs() < 1e-4);
         // The same steps take CoPO's unbounded μ well past 20°; the bounded one stays within.
         let unbounded = mean_after_large_meta_steps(90.0, 4);

@@ -22,7 +22,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Reduction, Tensor};
 
-use junction_common::config::{DqnConfig, GlobalReturn, LcfConfig};
+use junction_common::config::{DqnConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::policy::Policy;
@@ -91,6 +91,7 @@ impl Dqn {
                 alpha: 1.0,
                 beta: 1.0,
                 global_return: GlobalReturn::Agent,
+                neighbourhood_reward: NeighbourhoodReward::Mean,
             },
             replay: ReplayBuffer::new(config.replay_capacity, obs_dim),
             online,
@@ -194,7 +195,7 @@ impl Algorithm for Dqn {
         let mut observations = Vec::new();
         let mut neighbour_counts = Vec::new();
         for f in fragments {
-            let rewards = lcf::coordinated_rewards(f, phi, lcf.alpha, lcf.beta);
+            let rewards = lcf::coordinated_rewards(f, phi, lcf);
             match self.replay.push_fragment(f, &rewards, |a| grid.index_of(a)) {
                 Some(added) => {
                     stats.agent_steps += added;
@@ -450,17 +451,19 @@ mod tests {
             alpha: 1.0,
             beta: 1.0,
             global_return: GlobalReturn::Agent,
+            neighbourhood_reward: NeighbourhoodReward::Mean,
         };
         let mut learner = dqn(&fixture_config()).with_coordination(&cooperative);
         learner.update(std::slice::from_ref(&fragment)).unwrap();
         let state = learner.replay.state();
         let stored = host(&state.iter().find(|(n, _)| n == "replay.rewards").unwrap().1);
-        let expected: Vec<f32> = lcf::coordinated_rewards(&fragment, 90f32.to_radians(), 1.0, 1.0)
-            .iter()
-            .zip(&fragment.alive)
-            .filter(|(_, alive)| **alive)
-            .map(|(r, _)| *r)
-            .collect();
+        let expected: Vec<f32> =
+            lcf::coordinated_rewards(&fragment, 90f32.to_radians(), &cooperative)
+                .iter()
+                .zip(&fragment.alive)
+                .filter(|(_, alive)| **alive)
+                .map(|(r, _)| *r)
+                .collect();
         assert_eq!(stored, expected);
         assert_ne!(
             stored[..5],

@@ -7,7 +7,8 @@
 //!                                    fragment ships (count, distances, relative speeds);
 //!         0 for an agent without neighbours (it has no neighbourhood reward to weigh)
 //! for each update (the loop is shared_ppo.rs's; the critics see the agent's observation):
-//!     r_C = α·cos φ·r_i + β·sin φ·r_N     (r_N: mean reward of the live neighbours, 0 alone)
+//!     r_C = α·cos φ·r_i + β·sin φ·r_N     (r_N: mean reward of the live neighbours, 0 alone;
+//!                                        centred per fragment by `lcf.neighbourhood_reward`)
 //!     r_G = mean reward of every agent in the scene at that step
 //!     A_C ← GAE(r_C, V_C) at γ;  A_G ← GAE(r_G, V_G) at γ = 1, ending with the agent or going
 //!     on with the scene (`lcf.global_return`)
@@ -80,11 +81,10 @@ pub struct DynamicLcf {
     /// f_ψ.
     net: Mlp,
     adam: Adam,
-    alpha: f32,
-    beta: f32,
+    /// α, β, where the global return ends and what r_N is.
+    lcf: LcfConfig,
     iterations: usize,
     cross_fit: bool,
-    global_return: GlobalReturn,
     max_phi_deg: f64,
     /// Largest mean |Δφ| over a batch per update, degrees (0: unpaced).
     max_phi_step_deg: f64,
@@ -105,11 +105,9 @@ impl DynamicLcf {
             store,
             net,
             adam,
-            alpha: lcf.alpha,
-            beta: lcf.beta,
+            lcf: lcf.clone(),
             iterations: config.meta_iterations,
             cross_fit: config.meta_cross_fit,
-            global_return: lcf.global_return,
             max_phi_deg: f64::from(config.max_phi_deg),
             max_phi_step_deg: f64::from(config.max_phi_step_deg),
         }
@@ -165,7 +163,7 @@ impl Coordination for DynamicLcf {
             Signal {
                 critic: "global_critic",
                 gamma: Some(1.0),
-                outlives_agent: self.global_return == GlobalReturn::Scene,
+                outlives_agent: self.lcf.global_return == GlobalReturn::Scene,
             },
         ]
     }
@@ -184,7 +182,7 @@ impl Coordination for DynamicLcf {
             .map(f32::to_radians)
             .collect();
         Ok(Cow::Owned(lcf::coordinated_rewards_per_cell(
-            fragment, &phi, self.alpha, self.beta,
+            fragment, &phi, &self.lcf,
         )))
     }
 
@@ -225,7 +223,7 @@ impl Coordination for DynamicLcf {
                 step.ppo.gamma,
                 step.ppo.gae_lambda,
             );
-            let r_n = lcf::neighbourhood_rewards(f);
+            let r_n = lcf::neighbourhood_rewards(f, self.lcf.neighbourhood_reward);
             for cell in (0..cells).filter(|&c| f.alive[c]) {
                 weights.push(w[cell]);
                 own.push(f.rewards[cell]);
@@ -245,7 +243,11 @@ impl Coordination for DynamicLcf {
             .map(|v| v.detach().copy())
             .collect();
         let phi_before = tch::no_grad(|| phi_deg(&self.net, &features, self.max_phi_deg));
-        let (net, alpha, beta) = (&self.net, f64::from(self.alpha), f64::from(self.beta));
+        let (net, alpha, beta) = (
+            &self.net,
+            f64::from(self.lcf.alpha),
+            f64::from(self.lcf.beta),
+        );
         let max_deg = self.max_phi_deg;
         meta_lcf::ascend(
             &mut self.adam,
@@ -314,7 +316,7 @@ mod tests {
         assert_checkpoint_round_trip, constant_critic_batch, copy_networks, host_state,
         neighbourhood_fragment, small_run,
     };
-    use junction_common::config::{DynamicLcfConfig, RunConfig};
+    use junction_common::config::{DynamicLcfConfig, NeighbourhoodReward, RunConfig};
 
     /// f_ψ with every weight 0 and output bias `bias`, bounded at 90°: φ = 90°·tanh(bias)
     /// for every agent with a neighbour.
@@ -355,33 +357,46 @@ mod tests {
         // φ = 30° for agents with neighbours, α = 1, β = ½; critics ≡ 0 and λ = 0 make
         // A_C = r_C. Rewards by slot: −½, ½, 3⁄2, −½, ½, 3⁄2 at both steps; r_N at t = 0:
         // slot 0 → 0.7, 2 → −½, 3 → 1; at t = 1: 0 → ½ (empty slot 5 left out), 3 → ½; the
-        // rest have no neighbours: φ = 0, their own reward.
-        let lcf = LcfConfig {
-            phi_deg: 0.0,
-            alpha: 1.0,
-            beta: 0.5,
-            global_return: GlobalReturn::Agent,
-        };
+        // rest have no neighbours: φ = 0, their own reward. Centred, the five r_N give up
+        // their mean, 2.2 / 5; the agents without neighbours are untouched.
+        for (neighbourhood_reward, shift) in [
+            (NeighbourhoodReward::Mean, 0.0),
+            (NeighbourhoodReward::Centred, 0.44),
+        ] {
+            let lcf = LcfConfig {
+                phi_deg: 0.0,
+                alpha: 1.0,
+                beta: 0.5,
+                global_return: GlobalReturn::Agent,
+                neighbourhood_reward,
+            };
+            let dynamic = constant((1.0f64 / 3.0).atanh(), &lcf, 1e-4);
+            let batch = constant_critic_batch(&dynamic, &neighbourhood_fragment(), 0.0, 0.99, 0.0);
+            let (c, s) = (3.0f32.sqrt() / 2.0, 0.5 * 0.5);
+            let expected = [
+                c * -0.5 + s * (0.7 - shift),
+                0.5,
+                c * 1.5 + s * (-0.5 - shift),
+                c * -0.5 + s * (1.0 - shift),
+                0.5,
+                1.5,
+                c * -0.5 + s * (0.5 - shift),
+                0.5,
+                1.5,
+                c * -0.5 + s * (0.5 - shift),
+                0.5,
+            ];
+            let got = host(&dynamic.policy_advantages(&batch).unwrap());
+            for (g, e) in got.iter().zip(expected) {
+                assert!(
+                    (g - e).abs() < 1e-5,
+                    "{neighbourhood_reward:?}: {got:?} vs {expected:?}"
+                );
+            }
+        }
+        let lcf = RunConfig::default().lcf;
         let dynamic = constant((1.0f64 / 3.0).atanh(), &lcf, 1e-4);
         let batch = constant_critic_batch(&dynamic, &neighbourhood_fragment(), 0.0, 0.99, 0.0);
-        let (c, s) = (3.0f32.sqrt() / 2.0, 0.5 * 0.5);
-        let expected = [
-            c * -0.5 + s * 0.7,
-            0.5,
-            c * 1.5 + s * -0.5,
-            c * -0.5 + s * 1.0,
-            0.5,
-            1.5,
-            c * -0.5 + s * 0.5,
-            0.5,
-            1.5,
-            c * -0.5 + s * 0.5,
-            0.5,
-        ];
-        let got = host(&dynamic.policy_advantages(&batch).unwrap());
-        for (g, e) in got.iter().zip(expected) {
-            assert!((g - e).abs() < 1e-5, "{got:?} vs {expected:?}");
-        }
         let report = dynamic.report(&[neighbourhood_fragment()], &batch).unwrap();
         // 5 of the 11 agent-steps have neighbours.
         assert!(

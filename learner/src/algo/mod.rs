@@ -173,11 +173,7 @@ pub fn build(config: &RunConfig, device: Device) -> Result<Box<dyn Algorithm + S
         AlgoKind::Copo => Box::new(ppo(
             "copo",
             OwnObservation,
-            Box::new(copo::CopoLcf::new(
-                &config.copo,
-                config.lcf.global_return,
-                device,
-            )),
+            Box::new(copo::CopoLcf::new(&config.copo, &config.lcf, device)),
         )),
         AlgoKind::DynamicLcf => Box::new(ppo(
             "dynamic-lcf",

@@ -685,7 +685,7 @@ mod tests {
     };
     use super::*;
     use crate::algo::ippo::Ippo;
-    use junction_common::config::{GlobalReturn, LcfConfig};
+    use junction_common::config::{GlobalReturn, LcfConfig, NeighbourhoodReward};
 
     fn learner(lcf: &LcfConfig) -> Ippo {
         let mut run = small_run();
@@ -802,6 +802,7 @@ mod tests {
             alpha: 1.0,
             beta: 1.0,
             global_return: GlobalReturn::Agent,
+            neighbourhood_reward: NeighbourhoodReward::Mean,
         };
         let mut plain = learner(&lcf(0.0));
         let mut cooperative = learner(&lcf(90.0));
