@@ -27,6 +27,9 @@
 //! (20° by default: at 45° runs whose φ rose past 30° still learned to wait); φ = 0 alone
 //! makes the lone case IPPO; the pace keeps φ from outrunning the policy that has to adapt
 //! to it.
+//! What pushes φ up is r_N's level (positive: a bonus for every step among neighbours): with
+//! `lcf.neighbourhood_reward = "centred"` φ stays near 0 and the crash reduction goes with it
+//! (RESULTS.md, "What the dynamic LCF's φ and fewer crashes come from").
 //!
 //! φ does not enter the observation: the learner computes it from the features, so actors run
 //! the plain policy. f_ψ starts with a near-zero output (φ ≈ 0°: IPPO, like CoPO's μ = 0°).
