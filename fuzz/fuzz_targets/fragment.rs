@@ -3,12 +3,20 @@
 //! what validation lets through must be safe for everything the learner does with it.
 #![no_main]
 
+use std::sync::LazyLock;
+
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
 
+use junction_common::config::{LcfConfig, NeighbourhoodReward, RunConfig};
 use junction_common::fragment::RolloutFragment;
-use junction_common::config::RunConfig;
 use junction_common::{lcf, proto};
+
+/// A coordination that reads every neighbour list, centred (the longer path); parsed once.
+static COORDINATION: LazyLock<LcfConfig> = LazyLock::new(|| LcfConfig {
+    neighbourhood_reward: NeighbourhoodReward::Centred,
+    ..RunConfig::default().lcf
+});
 
 fuzz_target!(|data: &[u8]| {
     let Ok(message) = proto::RolloutFragment::decode(data) else {
@@ -25,7 +33,7 @@ fuzz_target!(|data: &[u8]| {
         }
         // Every neighbour list is in bounds and every neighbour a slot (the learner indexes
         // rewards and observations with them).
-        let rewards = lcf::coordinated_rewards(&fragment, 0.7, &RunConfig::default().lcf);
+        let rewards = lcf::coordinated_rewards(&fragment, 0.7, &COORDINATION);
         assert_eq!(rewards.len(), fragment.steps * fragment.agents);
         // A valid fragment survives the trip back to the wire unchanged.
         let again = RolloutFragment::from_proto(fragment.clone().into_proto(), dims)

@@ -9,9 +9,15 @@ use std::sync::LazyLock;
 
 use libfuzzer_sys::fuzz_target;
 
+use junction_common::config::{LcfConfig, NeighbourhoodReward, RunConfig};
 use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
-use junction_common::config::RunConfig;
 use junction_common::{lcf, shm_layout};
+
+/// A coordination that reads every neighbour list, centred (the longer path); parsed once.
+static COORDINATION: LazyLock<LcfConfig> = LazyLock::new(|| LcfConfig {
+    neighbourhood_reward: NeighbourhoodReward::Centred,
+    ..RunConfig::default().lcf
+});
 
 /// 3 steps × 2 slots: slot 0's agent finishes at step 1 and a new one takes the slot.
 static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
@@ -27,7 +33,9 @@ static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
         obs_dim,
         action_dim,
         obs: (0..cells * obs_dim).map(|i| i as f32 / 100.0).collect(),
-        actions: (0..cells * action_dim).map(|i| i as f32 / 8.0 - 0.5).collect(),
+        actions: (0..cells * action_dim)
+            .map(|i| i as f32 / 8.0 - 0.5)
+            .collect(),
         log_probs: (0..cells).map(|i| -(i as f32)).collect(),
         rewards: vec![0.5, 1.0, 10.0, 1.5, 0.25, 2.0],
         costs: vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
@@ -36,7 +44,9 @@ static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
         bootstrap_obs: vec![0.1; agents * obs_dim],
         neighbour_offsets: vec![0, 1, 2, 3, 4, 4, 4],
         neighbour_ids: vec![1, 0, 1, 0],
-        lcf_features: (0..cells * lcf::FEATURES).map(|i| i as f32 / 40.0).collect(),
+        lcf_features: (0..cells * lcf::FEATURES)
+            .map(|i| i as f32 / 40.0)
+            .collect(),
         episodes: vec![EpisodeStats {
             outcome: Outcome::Success,
             length: 2,
@@ -69,7 +79,7 @@ fn check(bytes: &[u8]) {
                     let _ = fragment.needs_bootstrap(slot);
                 }
                 // Neighbour lists in bounds, neighbours real slots: the learner indexes with them.
-                let rewards = lcf::coordinated_rewards(&fragment, 0.7, &RunConfig::default().lcf);
+                let rewards = lcf::coordinated_rewards(&fragment, 0.7, &COORDINATION);
                 assert_eq!(rewards.len(), fragment.steps * fragment.agents);
                 let again = shm_layout::encode(&fragment).expect("an accepted fragment encodes");
                 assert_eq!(again, bytes, "accepted bytes must encode back unchanged");
