@@ -33,9 +33,7 @@ static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
         obs_dim,
         action_dim,
         obs: (0..cells * obs_dim).map(|i| i as f32 / 100.0).collect(),
-        actions: (0..cells * action_dim)
-            .map(|i| i as f32 / 8.0 - 0.5)
-            .collect(),
+        actions: (0..cells * action_dim).map(|i| i as f32 / 8.0 - 0.5).collect(),
         log_probs: (0..cells).map(|i| -(i as f32)).collect(),
         rewards: vec![0.5, 1.0, 10.0, 1.5, 0.25, 2.0],
         costs: vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
@@ -44,9 +42,7 @@ static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
         bootstrap_obs: vec![0.1; agents * obs_dim],
         neighbour_offsets: vec![0, 1, 2, 3, 4, 4, 4],
         neighbour_ids: vec![1, 0, 1, 0],
-        lcf_features: (0..cells * lcf::FEATURES)
-            .map(|i| i as f32 / 40.0)
-            .collect(),
+        lcf_features: (0..cells * lcf::FEATURES).map(|i| i as f32 / 40.0).collect(),
         episodes: vec![EpisodeStats {
             outcome: Outcome::Success,
             length: 2,
