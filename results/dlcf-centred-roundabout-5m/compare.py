@@ -63,6 +63,20 @@ COLUMNS = [
 ]
 
 
+def print_seed_by_seed(table):
+    """One line per arm of `table` ({arm: {seed: measures}}), each run's training and mean-action
+    evaluation."""
+    print("\nSeed by seed (training success / crash / timeout; eval mean success / crash):\n")
+    for label, runs in table.items():
+        line = []
+        for s, m in runs.items():
+            if "success" in m:
+                ev = m["mean scene_success_rate"], m["mean scene_crash_rate"]
+                ev_text = "–" if None in ev else f"{ev[0]:.2f}/{ev[1]:.2f}"
+                line.append(f"s{s} {m['success']:.2f}/{m['crash']:.2f}/{m['timeout']:.2f}; {ev_text}")
+        print(f"- {label}: " + ", ".join(line))
+
+
 def main():
     scene = sys.argv[1] if len(sys.argv) > 1 else "roundabout"
     table = {label: {s: measures(scene, *dirs(s)) for s in SEEDS} for label, dirs in arms(scene)}
@@ -74,15 +88,7 @@ def main():
         cells = [fmt([m[k] for m in done if m.get(k) is not None], 0 if k == "steps" else 2)
                  for _, k in COLUMNS]
         print(f"| {label} | {len(done)} | " + " | ".join(cells) + " |")
-    print("\nSeed by seed (training success / crash / timeout; eval mean success / crash):\n")
-    for label, runs in table.items():
-        line = []
-        for s, m in runs.items():
-            if "success" in m:
-                ev = m["mean scene_success_rate"], m["mean scene_crash_rate"]
-                ev_text = "–" if None in ev else f"{ev[0]:.2f}/{ev[1]:.2f}"
-                line.append(f"s{s} {m['success']:.2f}/{m['crash']:.2f}/{m['timeout']:.2f}; {ev_text}")
-        print(f"- {label}: " + ", ".join(line))
+    print_seed_by_seed(table)
     arm = table["dynamic LCF, r_N centred"]
     for base_label in ("IPPO", "dynamic LCF, r_N mean"):
         base = table[base_label]

@@ -16,6 +16,10 @@ ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("grid_tables", ROOT / "scripts" / "grid-tables.py")
 grid_tables = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(grid_tables)
+_spec = importlib.util.spec_from_file_location(
+    "centred", ROOT / "results" / "dlcf-centred-roundabout-5m" / "compare.py")
+centred = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(centred)
 fmt = grid_tables.fmt
 SEEDS = [1, 2, 3, 4, 5, 6]
 EVAL_SEED = 777
@@ -90,15 +94,7 @@ def main():
         cells = [fmt([m[k] for m in done if m.get(k) is not None], digits(k))
                  if any(m.get(k) is not None for m in done) else "–" for _, k in COLUMNS]
         print(f"| {label} | {len(done)} / {evaluated} | " + " | ".join(cells) + " |")
-    print("\nSeed by seed (training success / crash / timeout; eval mean success / crash):\n")
-    for label, runs in table.items():
-        line = []
-        for s, m in runs.items():
-            if "success" in m:
-                ev = m["mean scene_success_rate"], m["mean scene_crash_rate"]
-                ev_text = "–" if None in ev else f"{ev[0]:.2f}/{ev[1]:.2f}"
-                line.append(f"s{s} {m['success']:.2f}/{m['crash']:.2f}/{m['timeout']:.2f}; {ev_text}")
-        print(f"- {label}: " + ", ".join(line))
+    centred.print_seed_by_seed(table)
     for title, arm_label, base_label in PAIRS:
         arm, base = table[arm_label], table[base_label]
         pairs = [(arm[s], base[s]) for s in SEEDS if "success" in arm[s] and "success" in base[s]]
