@@ -5,8 +5,10 @@ the repository root):
     python3 results/dlcf-phi10-roundabout-5m/compare.py intersection
 
 The φ ≤ 10° runs are results/dlcf-phi10-<scene>-5m's, the others those that
-results/dlcf-centred-<scene>-5m/compare.py tables.Its measures and columns: training, the last window; evaluation, the final checkpoints on the
-validation seed 777, mean and sampled actions.
+results/dlcf-centred-<scene>-5m/compare.py tables. Its measures and columns: training, the last
+window; evaluation, the final checkpoints on the validation seed 777, mean and sampled actions.
+Then seeds 1-6 in training alone: seeds 1-3's IPPO and φ ≤ 20° runs are results/grid-5m's,
+whose checkpoints were evaluated on the unseen seed only and not kept.
 """
 import importlib.util
 import sys
@@ -50,6 +52,38 @@ def main():
                      if arm[s].get(k) is not None and base[s].get(k) is not None]
             each = ", ".join(f"{d:+.{digits(k)}f}" for d in diffs)
             cells.append(f"{fmt(diffs, digits(k), signed=True)} ({each})" if diffs else "–")
+        print("| " + " | ".join(cells) + " |")
+    print_training_pairs(scene, here)
+
+
+TRAINING = [("success", "success"), ("crash", "crash"), ("timeout", "timeout")]
+
+
+def print_training_pairs(scene, here):
+    """φ ≤ 10° − IPPO and − φ ≤ 20° in training over every seed both have run (1-6)."""
+    grid = ROOT / "results" / "grid-5m" / "runs"
+    seeds456 = ROOT / "results" / "seeds456-5m"
+
+    def baseline(method, s):
+        if s <= 3:
+            return grid / f"{method}-{scene}-s{s}"
+        return seeds456 / f"{scene}-s{s}" / "runs" / f"{method}-{scene}-s{s}"
+
+    seeds = range(1, 7)
+    arm = {s: centred.measures(scene, here / f"runs/phi10-s{s}", here / f"runs/phi10-s{s}") for s in seeds}
+    for label, method in (("IPPO", "ippo"), ("φ ≤ 20°", "dynamic-lcf")):
+        base = {s: centred.measures(scene, baseline(method, s), baseline(method, s)) for s in seeds}
+        # A φ ≤ 10° run counts once evaluated (a run still training has a progress file too).
+        done = [s for s in seeds if arm[s].get("mean scene_success_rate") is not None
+                and "success" in base[s]]
+        print(f"\nTraining, φ ≤ 10° − {label}, same seed (n = {len(done)}, seeds {done}):\n")
+        print("| " + " | ".join(c for c, _ in TRAINING) + " |")
+        print("|" + "---|" * len(TRAINING))
+        cells = []
+        for _, k in TRAINING:
+            diffs = [arm[s][k] - base[s][k] for s in done]
+            each = ", ".join(f"{d:+.2f}" for d in diffs)
+            cells.append(f"{fmt(diffs, 2, signed=True)} ({each})" if diffs else "–")
         print("| " + " | ".join(cells) + " |")
 
 
