@@ -3,9 +3,13 @@
 
     scripts/grid-tables.py results/grid-5m > tables.md
     scripts/grid-tables.py results/grid-5m results/seeds456-5m/* 1000   # more seeds, one table
+    scripts/grid-tables.py --replace results/grid-5m results/dlcf-phi10-roundabout-5m/grid-s123.tsv
 
 Reads each OUT/grid.tsv (the runs `scripts/experiments.sh` finished; several OUTs are read as
-one grid, so seeds added later in other directories join the same tables) and, per run, progress.jsonl
+one grid, so seeds added later in other directories join the same tables; an OUT may also name
+a grid.tsv-shaped file itself). The same method, scene and seed in two OUTs is an error, or
+with --replace the later one's run replaces the earlier's (a method re-run at new defaults).
+Then, per run, progress.jsonl
 and the evaluation JSON of `actor eval` (mean action, and sampled where present). Prints, in
 Markdown: every run's figures, Table 1 per scene, each method against IPPO of the same seed, and the training
 curves at CoPO's reference environment steps. `learner report` (the grid's report/) covers
@@ -148,7 +152,9 @@ def per_run(runs, eval_seed):
             evaluated.append("–" if success is None else
                              f"{success:.3f} / {r.eval_metric(actions, 'scene_crash_rate'):.3f}"
                              f" / {r.scene_timeout(actions):.3f}")
-        print(f"| {r.dir.name} | {training} | " + " | ".join(evaluated) + " |")
+        name = f"{r.method}-{r.scene}-s{r.seed}"
+        label = name if r.dir.name == name else f"{name} ({r.dir.parent.parent.name}/{r.dir.name})"
+        print(f"| {label} | {training} | " + " | ".join(evaluated) + " |")
     print()
 
 
@@ -238,7 +244,8 @@ def curves(runs, scenes):
 
 
 def read_grid(root, eval_seed):
-    grid = root / "grid.tsv"
+    grid = root if root.suffix == ".tsv" else root / "grid.tsv"
+    root = grid.parent
     if not grid.exists():
         sys.exit(f"{grid} not found: run scripts/experiments.sh with OUT={root} first")
     with open(grid) as f:
@@ -255,19 +262,23 @@ def read_grid(root, eval_seed):
 
 def main():
     args = sys.argv[1:]
+    replace = "--replace" in args
+    args = [a for a in args if a != "--replace"]
     eval_seed = int(args.pop()) if args and args[-1].isdigit() else 1000
     if not args:
-        sys.exit("usage: scripts/grid-tables.py OUT [OUT ...] [EVAL_SEED]   (each OUT holds grid.tsv)")
-    runs, seen = [], {}
+        sys.exit("usage: scripts/grid-tables.py [--replace] OUT [OUT ...] [EVAL_SEED]   "
+                 "(each OUT holds grid.tsv or is one)")
+    by_key, seen = {}, {}
     for root in map(Path, args):
         for run in read_grid(root, eval_seed):
             key = (run.method, run.scene, run.seed)
             # The same run twice would count one seed as two in every interval.
-            if key in seen:
+            if key in seen and not replace:
                 sys.exit(f"{run.method} on {run.scene}, seed {run.seed}, is in both {seen[key]} "
-                         f"and {root}: give each run once")
+                         f"and {root}: give each run once (or --replace)")
             seen[key] = root
-            runs.append(run)
+            by_key[key] = run
+    runs = list(by_key.values())
     scenes = [s for s in SCENE_AGENTS if any(r.scene == s for r in runs)]
     per_run(runs, eval_seed)
     for scene in scenes:

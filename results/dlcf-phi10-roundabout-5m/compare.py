@@ -7,8 +7,9 @@ the repository root):
 The φ ≤ 10° runs are results/dlcf-phi10-<scene>-5m's, the others those that
 results/dlcf-centred-<scene>-5m/compare.py tables. Its measures and columns: training, the last
 window; evaluation, the final checkpoints on the validation seed 777, mean and sampled actions.
-Then seeds 1-6 in training alone: seeds 1-3's IPPO and φ ≤ 20° runs are results/grid-5m's,
-whose checkpoints were evaluated on the unseen seed only and not kept.
+Then seeds 1-6 in training and on the unseen seed 1000, the grid's evaluation (seeds 1-3's IPPO
+and φ ≤ 20° runs are results/grid-5m's, 4-6 results/seeds456-5m's; their checkpoints were
+evaluated on 1000 only and seeds 1-3's not kept, so 777 pairs only seeds 4-6).
 """
 import importlib.util
 import sys
@@ -53,14 +54,32 @@ def main():
             each = ", ".join(f"{d:+.{digits(k)}f}" for d in diffs)
             cells.append(f"{fmt(diffs, digits(k), signed=True)} ({each})" if diffs else "–")
         print("| " + " | ".join(cells) + " |")
-    print_training_pairs(scene, here)
+    print_six_seed_pairs(scene, here)
 
 
-TRAINING = [("success", "success"), ("crash", "crash"), ("timeout", "timeout")]
+UNSEEN_SEED = 1000
+SIX_SEEDS = [
+    ("training success", "success"), ("crash", "crash"), ("timeout", "timeout"),
+    ("unseen, mean action: success", "mean scene_success_rate"), ("crash", "mean scene_crash_rate"),
+    ("timeout", "mean timeout_rate"),
+    ("sampled: success", "sample scene_success_rate"), ("crash", "sample scene_crash_rate"),
+]
 
 
-def print_training_pairs(scene, here):
-    """φ ≤ 10° − IPPO and − φ ≤ 20° in training over every seed both have run (1-6)."""
+def six_seed_measures(scene, run_dir):
+    """Training (last window) and the evaluations on the unseen seed, as the grid reports them."""
+    out = {k: v for k, v in centred.measures(scene, run_dir, run_dir).items()
+           if k in ("success", "crash", "timeout")}
+    for actions in ("mean", "sample"):
+        e = centred.grid_tables.read_eval(run_dir, scene, UNSEEN_SEED, actions)
+        for key in ("scene_success_rate", "scene_crash_rate", "timeout_rate"):
+            out[f"{actions} {key}"] = e["metrics"][key]["value"] if e else None
+    return out
+
+
+def print_six_seed_pairs(scene, here):
+    """φ ≤ 10° − IPPO and − φ ≤ 20° over seeds 1-6, in training and on the unseen seed 1000
+    (the grid's evaluation: results/grid-5m has seeds 1-3, results/seeds456-5m seeds 4-6)."""
     grid = ROOT / "results" / "grid-5m" / "runs"
     seeds456 = ROOT / "results" / "seeds456-5m"
 
@@ -70,20 +89,22 @@ def print_training_pairs(scene, here):
         return seeds456 / f"{scene}-s{s}" / "runs" / f"{method}-{scene}-s{s}"
 
     seeds = range(1, 7)
-    arm = {s: centred.measures(scene, here / f"runs/phi10-s{s}", here / f"runs/phi10-s{s}") for s in seeds}
+    arm = {s: six_seed_measures(scene, here / f"runs/phi10-s{s}") for s in seeds}
     for label, method in (("IPPO", "ippo"), ("φ ≤ 20°", "dynamic-lcf")):
-        base = {s: centred.measures(scene, baseline(method, s), baseline(method, s)) for s in seeds}
-        # A φ ≤ 10° run counts once evaluated (a run still training has a progress file too).
-        done = [s for s in seeds if arm[s].get("mean scene_success_rate") is not None
-                and "success" in base[s]]
-        print(f"\nTraining, φ ≤ 10° − {label}, same seed (n = {len(done)}, seeds {done}):\n")
-        print("| " + " | ".join(c for c, _ in TRAINING) + " |")
-        print("|" + "---|" * len(TRAINING))
+        base = {s: six_seed_measures(scene, baseline(method, s)) for s in seeds}
+        print(f"\nφ ≤ 10° − {label}, seeds 1-6, training and unseen seed {UNSEEN_SEED} "
+              f"(n: the seeds where both have the measure):\n")
+        print("| " + " | ".join(c for c, _ in SIX_SEEDS) + " |")
+        print("|" + "---|" * len(SIX_SEEDS))
         cells = []
-        for _, k in TRAINING:
-            diffs = [arm[s][k] - base[s][k] for s in done]
+        for _, k in SIX_SEEDS:
+            # The arm's training counts once the run was evaluated (one still training has a
+            # progress file too).
+            diffs = [arm[s][k] - base[s][k] for s in seeds
+                     if arm[s].get(k) is not None and base[s].get(k) is not None
+                     and arm[s].get("mean scene_success_rate") is not None]
             each = ", ".join(f"{d:+.2f}" for d in diffs)
-            cells.append(f"{fmt(diffs, 2, signed=True)} ({each})" if diffs else "–")
+            cells.append(f"{fmt(diffs, 2, signed=True)} (n = {len(diffs)}: {each})" if diffs else "–")
         print("| " + " | ".join(cells) + " |")
 
 
