@@ -92,3 +92,19 @@ def test_paired_differences_and_reference_curves(tmp_path):
     assert curve[3] == f"0.60 ± {T1 * 0.1:.2f}" and curve[5] == "–"
     assert "*CoPO's IPPO on MetaDrive (reference)*" in out
     assert "| intersection | cl |" not in out.split("reference curves")[1]
+
+
+def test_a_rerun_replaces_the_grids_run_only_when_asked(tmp_path):
+    make_grid(tmp_path / "grid")
+    # CL seed 1 re-run elsewhere (new defaults), listed in a grid.tsv-shaped file of its own.
+    row = write_run(tmp_path / "rerun", "cl", 1, [0.9, 0.5, 0.9], 0.1, 0.9, 0.6)
+    rerun = tmp_path / "rerun" / "cl-rerun.tsv"
+    rerun.write_text("method\tscene\tseed\tstatus\ttrain_s\teval_s\tagent_steps\trun_dir\n" + row)
+    args = [sys.executable, str(SCRIPT), str(tmp_path / "grid"), str(rerun)]
+    refused = subprocess.run(args, capture_output=True, text=True)
+    assert refused.returncode != 0 and "--replace" in refused.stderr
+    out = subprocess.run(args + ["--replace"], check=True, capture_output=True, text=True).stdout
+    rows = {line.split("|")[1].strip() + "|" + line.split("|")[2].strip(): line
+            for line in out.splitlines() if line.startswith("| ")}
+    # Still two CL seeds, the first now the re-run's last window 0.9 (with seed 2's 0.6).
+    assert cells(rows["CL|2"])[3] == f"0.75 ± {T1 * 0.15:.2f}"
