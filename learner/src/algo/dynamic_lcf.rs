@@ -24,9 +24,9 @@
 //! with φ free in ±90° and CoPO's r_N = 0 for an agent alone, the meta-gradient drove φ to
 //! 90° everywhere (lone agents first: φ only scaled their own reward down) and the agents
 //! learned to wait. φ_max keeps every agent's own reward weighted more than its neighbours'
-//! (20° by default: at 45° runs whose φ rose past 30° still learned to wait); φ = 0 alone
-//! makes the lone case IPPO; the pace keeps φ from outrunning the policy that has to adapt
-//! to it.
+//! (10° by default: at 45° runs whose φ rose past 30° still learned to wait, at 20° half of the
+//! roundabout's seeds did); φ = 0 alone makes the lone case IPPO; the pace keeps φ from
+//! outrunning the policy that has to adapt to it.
 //! What pushes φ up is r_N's level (positive: a bonus for every step among neighbours): with
 //! `lcf.neighbourhood_reward = "centred"` φ stays near 0 and the crash reduction goes with it
 //! (RESULTS.md, "What the dynamic LCF's φ and fewer crashes come from").
