@@ -1327,7 +1327,7 @@ mod tests {
         let c = RunConfig::default();
         assert_eq!(
             (c.copo.max_mean_deg, c.dynamic_lcf.max_phi_deg),
-            (90.0, 20.0)
+            (90.0, 10.0)
         );
         for bad in [
             vec!["copo.max_mean_deg=0.0"],
