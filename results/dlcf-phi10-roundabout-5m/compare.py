@@ -45,16 +45,23 @@ def main():
         base = table[base_label]
         seeds = [s for s in centred.SEEDS if "success" in arm[s] and "success" in base[s]]
         print(f"\nφ ≤ 10° − {base_label}, same seed (n = {len(seeds)}; seed by seed in brackets):\n")
-        print("| " + " | ".join(c for c, _ in columns) + " |")
-        print("|" + "---|" * len(columns))
-        cells = []
-        for _, k in columns:
-            diffs = [arm[s][k] - base[s][k] for s in seeds
-                     if arm[s].get(k) is not None and base[s].get(k) is not None]
-            each = ", ".join(f"{d:+.{digits(k)}f}" for d in diffs)
-            cells.append(f"{fmt(diffs, digits(k), signed=True)} ({each})" if diffs else "–")
-        print("| " + " | ".join(cells) + " |")
+        print_paired(arm, base, seeds, columns)
     print_six_seed_pairs(scene, here)
+
+
+def print_paired(arm, base, seeds, columns, count=False):
+    """One table row of arm − base per column over `seeds` where both have the measure, each
+    seed's difference in brackets (after their number with `count`)."""
+    print("| " + " | ".join(c for c, _ in columns) + " |")
+    print("|" + "---|" * len(columns))
+    cells = []
+    for _, k in columns:
+        diffs = [arm[s][k] - base[s][k] for s in seeds
+                 if arm[s].get(k) is not None and base[s].get(k) is not None]
+        each = ", ".join(f"{d:+.{digits(k)}f}" for d in diffs)
+        n = f"n = {len(diffs)}: " if count else ""
+        cells.append(f"{fmt(diffs, digits(k), signed=True)} ({n}{each})" if diffs else "–")
+    print("| " + " | ".join(cells) + " |")
 
 
 UNSEEN_SEED = 1000
@@ -94,18 +101,10 @@ def print_six_seed_pairs(scene, here):
         base = {s: six_seed_measures(scene, baseline(method, s)) for s in seeds}
         print(f"\nφ ≤ 10° − {label}, seeds 1-6, training and unseen seed {UNSEEN_SEED} "
               f"(n: the seeds where both have the measure):\n")
-        print("| " + " | ".join(c for c, _ in SIX_SEEDS) + " |")
-        print("|" + "---|" * len(SIX_SEEDS))
-        cells = []
-        for _, k in SIX_SEEDS:
-            # The arm's training counts once the run was evaluated (one still training has a
-            # progress file too).
-            diffs = [arm[s][k] - base[s][k] for s in seeds
-                     if arm[s].get(k) is not None and base[s].get(k) is not None
-                     and arm[s].get("mean scene_success_rate") is not None]
-            each = ", ".join(f"{d:+.2f}" for d in diffs)
-            cells.append(f"{fmt(diffs, 2, signed=True)} (n = {len(diffs)}: {each})" if diffs else "–")
-        print("| " + " | ".join(cells) + " |")
+        # The arm's training counts once the run was evaluated (one still training has a
+        # progress file too).
+        evaluated = [s for s in seeds if arm[s].get("mean scene_success_rate") is not None]
+        print_paired(arm, base, evaluated, SIX_SEEDS, count=True)
 
 
 if __name__ == "__main__":
