@@ -25,7 +25,7 @@ for dep in "${DEPS[@]}"; do
 done
 if [ ${#missing[@]} -gt 0 ]; then
     echo "build-python: installing ${missing[*]} into $VENV (first time only; metadrive-simulator ~3 minutes)"
-    "$PY" -m pip install --disable-pip-version-check --no-input --quiet "${missing[@]}"
+    "$PY" -m pip install --disable-pip-version-check --no-input --no-cache-dir --quiet "${missing[@]}"
 fi
 
 # gRPC stubs: importable as junction._proto.junction_pb2(_grpc).

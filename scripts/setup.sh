@@ -13,6 +13,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 TORCH_VERSION=2.13.0
+TORCH_INSTALL_GB=8
 KUBERNETES_VALIDATE_VERSION=1.37.0
 TENSORBOARD_VERSION=2.21.0
 VENV=.venv
@@ -40,7 +41,7 @@ installed_torch() {
 pip_install() {
     local log
     log=$(mktemp "${TMPDIR:-/tmp}/junction-setup-pip.XXXXXX")
-    if ! "$VENV/bin/python" -m pip install --disable-pip-version-check --no-input --quiet "$@" >"$log" 2>&1; then
+    if ! "$VENV/bin/python" -m pip install --disable-pip-version-check --no-input --no-cache-dir --quiet "$@" >"$log" 2>&1; then
         echo "setup: test tool missing: could not install PyPI package $* into $VENV (pip's output: $log)" >&2
         exit 1
     fi
@@ -55,9 +56,17 @@ if [ ! -x "$VENV/bin/python" ]; then
     }
 fi
 if [ "$(installed_torch)" != "$TORCH_VERSION" ]; then
+    # 2.74 GB of wheels sit in pip's temporary folder while 4.7 GB install beside them; checked
+    # first, so a full disk stops here in a second rather than after the download.
+    free_gb=$(df -Pk . | awk 'NR == 2 { printf "%d", $4 / 1048576 }')
+    if [ "$free_gb" -lt "$TORCH_INSTALL_GB" ]; then
+        echo "setup: PyTorch $TORCH_VERSION needs about $TORCH_INSTALL_GB GB free to install (2.7 GB of wheels while installing, 4.7 GB installed); $(pwd) has $free_gb GB free" >&2
+        exit 1
+    fi
     echo "setup: installing PyTorch $TORCH_VERSION into $VENV (first time only; ~2.8 GB download)"
-    # pip's own output here: the download takes minutes and shows its progress.
-    "$VENV/bin/python" -m pip install --disable-pip-version-check --no-input "torch==$TORCH_VERSION" || {
+    # pip's own output here: the download takes minutes and shows its progress. No wheel cache:
+    # the venv keeps what it installs, and a cached copy would hold 2.7 GB more for nothing.
+    "$VENV/bin/python" -m pip install --disable-pip-version-check --no-input --no-cache-dir "torch==$TORCH_VERSION" || {
         echo "setup: could not install PyPI package torch==$TORCH_VERSION (the libtorch tch links against) into $VENV" >&2
         exit 1
     }
