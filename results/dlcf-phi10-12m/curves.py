@@ -1,4 +1,4 @@
-"""The 30-minute check of the dynamic LCF at φ ≤ 10° (run from the repository root):
+"""The 30-minute checks of the dynamic LCF at φ ≤ 10° (run from the repository root):
 
     python3 results/dlcf-phi10-12m/curves.py
 
@@ -6,7 +6,8 @@ Per seed: the training window (MetaDrive's success / crash / timeout) at marks o
 the best window and the lowest one after it (the issue's "never below 80 % of its best"),
 φ by live-neighbour count at the end, and the final checkpoint on the unseen seed 1000 (mean
 action and sampled). Then the same seeds of the dynamic LCF at 20° and IPPO at the same budget
-and schedule (results/dlcf-scene-phi20-linear-12m, results/lcf20-linear-12m), paired.
+and schedule (results/dlcf-scene-phi20-linear-12m, results/lcf20-linear-12m), and φ ≤ 10° with
+an entropy bonus (results/dlcf-phi10-entropy-12m), paired.
 """
 import importlib.util
 from pathlib import Path
@@ -25,7 +26,11 @@ ARMS = [
     ("φ ≤ 10°", lambda s: ROOT / f"results/dlcf-phi10-12m/runs/phi10-s{s}"),
     ("φ ≤ 20°", lambda s: ROOT / f"results/dlcf-scene-phi20-linear-12m/runs/scene-phi20-linear-s{s}"),
     ("IPPO", lambda s: ROOT / f"results/lcf20-linear-12m/runs/ippo-s{s}"),
+    ("φ ≤ 10°, entropy 0.005", lambda s: ROOT / f"results/dlcf-phi10-entropy-12m/runs/phi10-ent005-s{s}"),
 ]
+# (arm, baseline) pairs of the paired differences.
+PAIRS = [("φ ≤ 10°", "IPPO"), ("φ ≤ 10°", "φ ≤ 20°"),
+         ("φ ≤ 10°, entropy 0.005", "φ ≤ 10°"), ("φ ≤ 10°, entropy 0.005", "IPPO")]
 
 
 def run_measures(run_dir):
@@ -49,6 +54,8 @@ def run_measures(run_dir):
         if before and last["agent_steps"] >= mark:
             w = before[-1]["scene_window"]
             out["marks"][mark] = (w["success_rate"], w["crash_rate"], w["timeout_rate"])
+    updates = [p["update"] for p in lines if p.get("update")]
+    out["entropy"] = updates[-1]["entropy"] if updates else None
     for actions in ("mean", "sample"):
         e = grid_tables.read_eval(run_dir, SCENE, UNSEEN_SEED, actions)
         out[actions] = None if e is None else (e["metrics"]["scene_success_rate"]["value"],
@@ -60,8 +67,8 @@ def main():
     table = {label: {s: run_measures(dirs(s)) for s in SEEDS} for label, dirs in ARMS}
     marks = " | ".join(f"{m / 1e6:.0f} M" for m in MARKS)
     print(f"| run | {marks} | best window | lowest after it | φ at the end: 0 / 1-2 / 3-5 / 6+ "
-          f"| unseen {UNSEEN_SEED}, mean action | sampled |")
-    print("|---" * (len(MARKS) + 6) + "|")
+          f"| unseen {UNSEEN_SEED}, mean action | sampled | entropy at the end |")
+    print("|---" * (len(MARKS) + 7) + "|")
     for label, runs in table.items():
         for s, m in runs.items():
             if m is None:
@@ -70,10 +77,12 @@ def main():
                      for k in MARKS]
             phi = " / ".join(f"{m['phi'][k]:.0f}°" for k in ("0", "1-2", "3-5", "6+")) if m["phi"] else "–"
             evals = ["–" if m[a] is None else f"{m[a][0]:.2f} / {m[a][1]:.2f}" for a in ("mean", "sample")]
+            share = f"{m['lowest_after'] / m['best']:.0%}" if m["best"] > 0 else "–"
             print(f"| {label} s{s} | " + " | ".join(cells)
                   + f" | {m['best']:.3f} at {m['best_at'] / 1e6:.1f} M"
-                  + f" | {m['lowest_after']:.3f} ({m['lowest_after'] / m['best']:.0%})"
-                  + f" | {phi} | " + " | ".join(evals) + " |")
+                  + f" | {m['lowest_after']:.3f} ({share})"
+                  + f" | {phi} | " + " | ".join(evals)
+                  + f" | {'–' if m['entropy'] is None else format(m['entropy'], '.2f')} |")
     print("\nOver seeds (mean ± 95 % t), runs that reached 12 M:\n")
     print("| arm | n | success at 12 M | crash | timeout | lowest after the best / best "
           "| unseen mean action: success | crash | sampled: success | crash |")
@@ -86,14 +95,17 @@ def main():
         print(f"| {label} | {len(ms)} | {at_end(0)} | {at_end(1)} | {at_end(2)} | {col(lambda m: m['lowest_after'] / m['best'])} "
               f"| {col(lambda m: m['mean'] and m['mean'][0])} | {col(lambda m: m['mean'] and m['mean'][1])} "
               f"| {col(lambda m: m['sample'] and m['sample'][0])} | {col(lambda m: m['sample'] and m['sample'][1])} |")
-    arm = done["φ ≤ 10°"]
-    for base_label in ("IPPO", "φ ≤ 20°"):
-        base = done[base_label]
+    for arm_label, base_label in PAIRS:
+        arm, base = done[arm_label], done[base_label]
         seeds = [s for s in arm if s in base]
-        print(f"\nφ ≤ 10° − {base_label}, same seed (n = {len(seeds)}): ", end="")
+        if not seeds:
+            continue
+        print(f"\n{arm_label} − {base_label}, same seed (n = {len(seeds)}): ", end="")
         parts = []
         for name, f in (("success at 12 M", lambda m: m["marks"][MARKS[-1]][0]),
                         ("crash", lambda m: m["marks"][MARKS[-1]][1]),
+                        ("timeout", lambda m: m["marks"][MARKS[-1]][2]),
+                        ("lowest after the best / best", lambda m: m["lowest_after"] / m["best"]),
                         ("unseen mean action", lambda m: m["mean"] and m["mean"][0]),
                         ("crash", lambda m: m["mean"] and m["mean"][1]),
                         ("sampled", lambda m: m["sample"] and m["sample"][0]),
