@@ -29,12 +29,7 @@ def main():
     table = {label: {s: phi10.six_seed_measures(SCENE, run(s)) for s in SEEDS} for label, run in ARMS}
     columns = phi10.SIX_SEEDS
     print(f"{SCENE}, seeds {SEEDS}, 5 M agent-steps (mean ± 95 % t over the evaluated seeds):\n")
-    print("| arm | n | " + " | ".join(c for c, _ in columns) + " |")
-    print("|" + "---|" * (len(columns) + 2))
-    for label, runs in table.items():
-        done = [m for m in runs.values() if m.get("mean scene_success_rate") is not None]
-        cells = [phi10.fmt([m[k] for m in done if m.get(k) is not None]) for _, k in columns]
-        print(f"| {label} | {len(done)} | " + " | ".join(cells) + " |")
+    phi10.print_means(table, columns, lambda m: m.get("mean scene_success_rate") is not None)
     arm = table["φ ≤ 10° + bonus"]
     evaluated = [s for s in SEEDS if arm[s].get("mean scene_success_rate") is not None]
     for base_label in ("φ ≤ 10°", "IPPO"):

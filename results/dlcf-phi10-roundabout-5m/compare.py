@@ -34,12 +34,7 @@ def main():
     table = {label: {s: centred.measures(scene, *dirs(s)) for s in centred.SEEDS} for label, dirs in arms}
     columns = centred.COLUMNS
     print(f"{scene}, seeds {centred.SEEDS}, 5 M agent-steps (mean ± 95 % t over the seeds with data):\n")
-    print("| arm | n | " + " | ".join(c for c, _ in columns) + " |")
-    print("|" + "---|" * (len(columns) + 2))
-    for label, runs in table.items():
-        done = [m for m in runs.values() if "success" in m]
-        cells = [fmt([m[k] for m in done if m.get(k) is not None], digits(k)) for _, k in columns]
-        print(f"| {label} | {len(done)} | " + " | ".join(cells) + " |")
+    print_means(table, columns, lambda m: "success" in m)
     arm = table["dynamic LCF, φ ≤ 10°"]
     for base_label in ("IPPO", "dynamic LCF, r_N mean"):
         base = table[base_label]
@@ -47,6 +42,17 @@ def main():
         print(f"\nφ ≤ 10° − {base_label}, same seed (n = {len(seeds)}; seed by seed in brackets):\n")
         print_paired(arm, base, seeds, columns)
     print_six_seed_pairs(scene, here)
+
+
+def print_means(table, columns, done):
+    """One table row per arm of `table` (label → seed → measures): over its runs that are
+    `done`, the mean ± 95 % t of each column."""
+    print("| arm | n | " + " | ".join(c for c, _ in columns) + " |")
+    print("|" + "---|" * (len(columns) + 2))
+    for label, runs in table.items():
+        ms = [m for m in runs.values() if done(m)]
+        cells = [fmt([m[k] for m in ms if m.get(k) is not None], digits(k)) for _, k in columns]
+        print(f"| {label} | {len(ms)} | " + " | ".join(cells) + " |")
 
 
 def print_paired(arm, base, seeds, columns, count=False):
