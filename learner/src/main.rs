@@ -271,7 +271,12 @@ fn main() -> anyhow::Result<()> {
                 .enable_all()
                 .build()
                 .context("starting the async runtime")?;
-            runtime.block_on(serve(args))
+            let served = runtime.block_on(serve(args));
+            drop(runtime);
+            if served.is_ok() && STOPPED_BY_CTRL_C.load(Ordering::Relaxed) {
+                end_by_sigint();
+            }
+            served
         }
     }
 }
@@ -681,6 +686,22 @@ async fn bind(addr: &str, what: &str) -> anyhow::Result<tokio::net::TcpListener>
         .with_context(|| format!("binding the {what} address {addr}"))
 }
 
+/// Set when Ctrl-C (SIGINT), not SIGTERM, stopped `serve`. A shell script without an INT
+/// trap takes a Ctrl-C whose child exits normally as handled by the child and goes on, so a
+/// `for seed in 1 2 3; do learner serve …; done` would start its next run; ending the process
+/// by SIGINT after the clean shutdown stops the script too.
+static STOPPED_BY_CTRL_C: AtomicBool = AtomicBool::new(false);
+
+/// Ends the process by SIGINT with the default action, after stdout is flushed.
+fn end_by_sigint() {
+    let _ = std::io::Write::flush(&mut std::io::stdout());
+    // SAFETY: signal(2) and raise(3) with constants; nothing else runs at this point.
+    unsafe {
+        libc::signal(libc::SIGINT, libc::SIG_DFL);
+        libc::raise(libc::SIGINT);
+    }
+}
+
 /// Stops training on Ctrl-C or SIGTERM; a second signal exits at once.
 async fn stop_on_signal(stop: Arc<AtomicBool>) {
     let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
@@ -691,14 +712,15 @@ async fn stop_on_signal(stop: Arc<AtomicBool>) {
         }
     };
     for _ in 0..2 {
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => {},
-            _ = term.recv() => {},
-        }
+        let ctrl_c = tokio::select! {
+            _ = tokio::signal::ctrl_c() => true,
+            _ = term.recv() => false,
+        };
         if stop.swap(true, Ordering::Relaxed) {
             tracing::warn!("second stop signal: exiting immediately");
             std::process::exit(130);
         }
+        STOPPED_BY_CTRL_C.store(ctrl_c, Ordering::Relaxed);
         tracing::info!("stop signal received: finishing the current step, writing a checkpoint");
     }
 }

@@ -3,6 +3,7 @@
 //! checkpoint, a resume under a configuration that does not fit. Every process is stopped when
 //! a test ends, however it ends.
 
+use std::os::unix::process::ExitStatusExt;
 use std::time::Duration;
 
 use junction_tests::{
@@ -235,9 +236,17 @@ fn a_learner_killed_while_writing_a_checkpoint_resumes_from_the_previous_one() {
     let mut actor = start_actor(&endpoints, dir.path(), "actor", &[]);
     let trained = wait_until(Duration::from_secs(120), || version(&endpoints) >= 2.0);
     assert!(trained, "no versions\n{}", learner.log_tail(30));
-    // A clean stop leaves a complete final checkpoint.
-    learner.signal(libc::SIGTERM);
-    assert!(learner.wait_exit(Duration::from_secs(60)).is_some());
+    // Ctrl-C stops as cleanly as SIGTERM, leaving a complete final checkpoint, and then ends
+    // the learner by SIGINT, so that a shell script running it stops as well.
+    learner.signal(libc::SIGINT);
+    let status = learner.wait_exit(Duration::from_secs(60));
+    assert_eq!(
+        status.and_then(|s| s.signal()),
+        Some(libc::SIGINT),
+        "{status:?}\n{}",
+        learner.log_tail(30)
+    );
+    assert!(learner.log().contains("writing a checkpoint"));
     assert!(actor.wait_exit(Duration::from_secs(30)).is_some());
     let complete = *checkpoint_versions(&run_dir).last().expect("a checkpoint");
 
