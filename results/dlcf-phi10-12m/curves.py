@@ -38,7 +38,7 @@ PAIRS = [("φ ≤ 10°", "IPPO"), ("φ ≤ 10°", "φ ≤ 20°"),
          ("φ ≤ 10°, entropy 0.005", "IPPO, entropy 0.005"), ("φ ≤ 10°, entropy 0.005", "IPPO")]
 
 
-def run_measures(run_dir):
+def run_measures(run_dir, marks=MARKS):
     """None while a run has no progress; else its curve, best window and evaluations."""
     if not (run_dir / "progress.jsonl").exists():
         return None
@@ -54,7 +54,7 @@ def run_measures(run_dir):
         "marks": {},
         "phi": (last.get("lcf") or {}).get("phi_deg_by_neighbours"),
     }
-    for mark in MARKS:
+    for mark in marks:
         before = [p for p in lines if p["agent_steps"] <= mark]
         if before and last["agent_steps"] >= mark:
             w = before[-1]["scene_window"]
@@ -69,18 +69,20 @@ def run_measures(run_dir):
     return out
 
 
-def main():
-    table = {label: {s: run_measures(dirs(s)) for s in SEEDS} for label, dirs in ARMS}
-    marks = " | ".join(f"{m / 1e6:.0f} M" for m in MARKS)
-    print(f"| run | {marks} | best window | lowest after it | φ at the end: 0 / 1-2 / 3-5 / 6+ "
+def main(arms=ARMS, pairs=PAIRS, marks=MARKS):
+    """The tables of some arms (label, seed → run directory) and paired differences, at marks."""
+    table = {label: {s: run_measures(dirs(s), marks) for s in SEEDS} for label, dirs in arms}
+    end = f"{marks[-1] / 1e6:g} M"
+    header = " | ".join(f"{m / 1e6:g} M" for m in marks)
+    print(f"| run | {header} | best window | lowest after it | φ at the end: 0 / 1-2 / 3-5 / 6+ "
           f"| unseen {UNSEEN_SEED}, mean action | sampled | entropy at the end |")
-    print("|---" * (len(MARKS) + 7) + "|")
+    print("|---" * (len(marks) + 7) + "|")
     for label, runs in table.items():
         for s, m in runs.items():
             if m is None:
                 continue
             cells = ["/".join(f"{v:.2f}" for v in m["marks"][k]) if k in m["marks"] else "–"
-                     for k in MARKS]
+                     for k in marks]
             phi = " / ".join(f"{m['phi'][k]:.0f}°" for k in ("0", "1-2", "3-5", "6+")) if m["phi"] else "–"
             evals = ["–" if m[a] is None else f"{m[a][0]:.2f} / {m[a][1]:.2f}" for a in ("mean", "sample")]
             share = f"{m['lowest_after'] / m['best']:.0%}" if m["best"] > 0 else "–"
@@ -89,28 +91,28 @@ def main():
                   + f" | {m['lowest_after']:.3f} ({share})"
                   + f" | {phi} | " + " | ".join(evals)
                   + f" | {'–' if m['entropy'] is None else format(m['entropy'], '.2f')} |")
-    print("\nOver seeds (mean ± 95 % t), runs that reached 12 M:\n")
-    print("| arm | n | success at 12 M | crash | timeout | lowest after the best / best "
+    print(f"\nOver seeds (mean ± 95 % t), runs that reached {end}:\n")
+    print(f"| arm | n | success at {end} | crash | timeout | lowest after the best / best "
           "| unseen mean action: success | crash | sampled: success | crash |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    done = {label: {s: m for s, m in runs.items() if m and m["steps"] >= 12e6} for label, runs in table.items()}
+    done = {label: {s: m for s, m in runs.items() if m and m["steps"] >= marks[-1]} for label, runs in table.items()}
     for label, runs in done.items():
         ms = list(runs.values())
         col = lambda f: fmt([f(m) for m in ms if f(m) is not None])
-        at_end = lambda i: col(lambda m: m["marks"][MARKS[-1]][i])
+        at_end = lambda i: col(lambda m: m["marks"][marks[-1]][i])
         print(f"| {label} | {len(ms)} | {at_end(0)} | {at_end(1)} | {at_end(2)} | {col(lambda m: m['lowest_after'] / m['best'])} "
               f"| {col(lambda m: m['mean'] and m['mean'][0])} | {col(lambda m: m['mean'] and m['mean'][1])} "
               f"| {col(lambda m: m['sample'] and m['sample'][0])} | {col(lambda m: m['sample'] and m['sample'][1])} |")
-    for arm_label, base_label in PAIRS:
+    for arm_label, base_label in pairs:
         arm, base = done[arm_label], done[base_label]
         seeds = [s for s in arm if s in base]
         if not seeds:
             continue
         print(f"\n{arm_label} − {base_label}, same seed (n = {len(seeds)}): ", end="")
         parts = []
-        for name, f in (("success at 12 M", lambda m: m["marks"][MARKS[-1]][0]),
-                        ("crash", lambda m: m["marks"][MARKS[-1]][1]),
-                        ("timeout", lambda m: m["marks"][MARKS[-1]][2]),
+        for name, f in ((f"success at {end}", lambda m: m["marks"][marks[-1]][0]),
+                        ("crash", lambda m: m["marks"][marks[-1]][1]),
+                        ("timeout", lambda m: m["marks"][marks[-1]][2]),
                         ("lowest after the best / best", lambda m: m["lowest_after"] / m["best"]),
                         ("unseen mean action", lambda m: m["mean"] and m["mean"][0]),
                         ("crash", lambda m: m["mean"] and m["mean"][1]),
