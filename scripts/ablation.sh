@@ -26,7 +26,9 @@
 #   FROM             a runs directory of an earlier ablation with the same arm names: each run
 #                    starts as a copy of FROM/<arm>-s<seed> (its evaluation left behind) and
 #                    continues from its newest checkpoint to BUDGET agent-steps [none]
-# Resumable: a run whose evaluation exists is kept; a run without one is trained again.
+# Resumable: the same command again keeps a run whose evaluation exists, continues one stopped
+# part-way (checkpoints, no evaluation: a session's end, Ctrl-C) from its newest checkpoint,
+# and trains the others.
 set -uo pipefail
 # The whole script is one block, read before any of it runs: editing this file while a long
 # run executes it cannot change what that run does next.
@@ -73,9 +75,14 @@ for seed in $SEEDS; do
             say "$name seed $seed: kept"
             continue
         fi
-        rm -rf "$run_dir"
         resume=0
-        if [ -n "$FROM" ]; then
+        continuing=""
+        if compgen -G "$run_dir/checkpoints/ckpt-*" >/dev/null; then
+            rm -rf "$run_dir/eval"
+            resume=1
+            continuing=", continuing from its newest checkpoint"
+        elif [ -n "$FROM" ]; then
+            rm -rf "$run_dir"
             if [ ! -d "$FROM/$name-s$seed/checkpoints" ]; then
                 say "$name seed $seed: no run to continue in $FROM/$name-s$seed"
                 continue
@@ -83,14 +90,17 @@ for seed in $SEEDS; do
             cp -r "$FROM/$name-s$seed" "$run_dir"
             rm -rf "$run_dir/eval"
             resume=1
+            continuing=", continuing $FROM/$name-s$seed"
+        else
+            rm -rf "$run_dir"
         fi
         mkdir -p "$run_dir"
-        say "$name seed $seed: training (${flags[$i]:-defaults})${FROM:+, continuing $FROM/$name-s$seed}"
+        say "$name seed $seed: training (${flags[$i]:-defaults})$continuing"
         # shellcheck disable=SC2086 # the arm's flags are a list of flags
         RUN_DIR="$run_dir" RESUME="$resume" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
             nice scripts/run-local.sh --scenario "$SCENARIO" --seed "$seed" \
             --set "run.max_agent_steps=$BUDGET" --set "run.progress_interval_s=5" \
-            ${flags[$i]} >"$run_dir/train.log" 2>&1
+            ${flags[$i]} >>"$run_dir/train.log" 2>&1
         status=$?
         [ "$interrupted" = 1 ] && break 2
         if [ "$status" -ne 0 ]; then
@@ -113,7 +123,7 @@ for seed in $SEEDS; do
 done
 if [ "$interrupted" = 1 ]; then
     # The report would mix the stopped run's training windows with the finished runs' evaluations.
-    say "interrupted: report not rewritten; the same command resumes (the stopped run trains again)"
+    say "interrupted: report not rewritten; the same command resumes (the stopped run from its newest checkpoint)"
     exit 130
 fi
 say "report"

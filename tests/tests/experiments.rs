@@ -4,10 +4,39 @@
 //! keeps a finished run instead of training it again, continues a run stopped part-way from
 //! its checkpoint and starts the runs it has not seen. Then `scripts/grid-tables.py` reads the
 //! two seeds from two grid directories as one grid, and refuses a run given twice.
+//! `scripts/ablation.sh` likewise: it trains and evaluates an arm, and run again it continues a
+//! run stopped part-way from its checkpoint and keeps a finished one.
 
 use std::time::Duration;
 
 use junction_tests::{Process, TempDir, bin_dir, workspace_root};
+
+/// Runs one of scripts/ with the knobs it reads from the environment; returns its log.
+fn run_script(
+    script: &str,
+    env: &[(&str, String)],
+    log_dir: &std::path::Path,
+    name: &str,
+) -> String {
+    let mut args: Vec<String> = env.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    args.push(
+        workspace_root()
+            .join("scripts")
+            .join(script)
+            .display()
+            .to_string(),
+    );
+    let mut process = Process::start(name, std::path::Path::new("/usr/bin/env"), &args, log_dir);
+    let status = process
+        .wait_exit(Duration::from_secs(150))
+        .unwrap_or_else(|| panic!("{script} did not finish in 150 s\n{}", process.log_tail(30)));
+    assert!(
+        status.success(),
+        "{script} failed\n{}",
+        process.log_tail(40)
+    );
+    process.log()
+}
 
 fn grid(
     out: &std::path::Path,
@@ -16,7 +45,6 @@ fn grid(
     seeds: &str,
     resume: bool,
 ) -> String {
-    let script = workspace_root().join("scripts/experiments.sh");
     let env = [
         ("BIN", bin_dir().display().to_string()),
         ("OUT", out.display().to_string()),
@@ -30,19 +58,53 @@ fn grid(
         ("EVAL_EPISODES", "3".into()),
         ("RESUME", if resume { "1" } else { "0" }.into()),
     ];
-    // The script reads its knobs from the environment: pass them through `env`.
-    let mut args: Vec<String> = env.iter().map(|(k, v)| format!("{k}={v}")).collect();
-    args.push(script.display().to_string());
-    let mut process = Process::start(name, std::path::Path::new("/usr/bin/env"), &args, log_dir);
-    let status = process
-        .wait_exit(Duration::from_secs(150))
-        .unwrap_or_else(|| panic!("the grid did not finish in 150 s\n{}", process.log_tail(30)));
+    run_script("experiments.sh", &env, log_dir, name)
+}
+
+#[test]
+fn an_ablation_trains_evaluates_and_continues_a_stopped_run_from_its_checkpoint() {
+    let dir = TempDir::new("ablation");
+    let out = dir.path().join("ablation");
+    let arms = dir.path().join("arms.tsv");
+    std::fs::write(&arms, "# one arm\nsmall\t--set ppo.minibatch_size=256\n").unwrap();
+    let env = [
+        ("BIN", bin_dir().display().to_string()),
+        ("ARMS", arms.display().to_string()),
+        ("OUT", out.display().to_string()),
+        ("SCENARIO", "tiny-straight".into()),
+        ("SEEDS", "4".into()),
+        ("BUDGET", "1500".into()),
+        ("ACTORS", "1".into()),
+        ("MAX_RUN_SECONDS", "90".into()),
+        ("EVAL_EPISODES", "3".into()),
+        ("EVAL_SAMPLED", "0".into()),
+    ];
+    let log = run_script("ablation.sh", &env, dir.path(), "ablation");
     assert!(
-        status.success(),
-        "the grid failed\n{}",
-        process.log_tail(40)
+        log.contains("small seed 4: training (--set ppo.minibatch_size=256)\n"),
+        "{log}"
     );
-    process.log()
+    let run = out.join("runs/small-s4");
+    let eval = run.join("eval/eval-tiny-straight-seed777.json");
+    assert!(eval.is_file(), "{log}");
+    assert!(out.join("report/report.md").is_file(), "{log}");
+
+    // A session that ended mid-training leaves checkpoints and no evaluation: the same command
+    // continues that run from its newest checkpoint, its log appended, then evaluates it.
+    std::fs::remove_dir_all(run.join("eval")).unwrap();
+    let log = run_script("ablation.sh", &env, dir.path(), "ablation-continued");
+    assert!(
+        log.contains("small seed 4: training (--set ppo.minibatch_size=256), continuing from its newest checkpoint"),
+        "{log}"
+    );
+    assert!(eval.is_file(), "{log}");
+    let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
+    assert!(train_log.contains("learner: resumed path="), "{train_log}");
+    assert_eq!(train_log.matches("run-local: ").count(), 2, "{train_log}");
+
+    // Evaluated: kept as it is.
+    let log = run_script("ablation.sh", &env, dir.path(), "ablation-kept");
+    assert!(log.contains("small seed 4: kept"), "{log}");
 }
 
 #[test]
