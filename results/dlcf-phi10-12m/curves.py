@@ -8,7 +8,8 @@ the best window and the lowest one after it (the issue's "never below 80 % of it
 action and sampled). Then the same seeds of the dynamic LCF at 20° and IPPO at the same budget
 and schedule (results/dlcf-scene-phi20-linear-12m, results/lcf20-linear-12m), and φ ≤ 10° with
 an entropy bonus (results/dlcf-phi10-entropy-12m) and IPPO with the same bonus
-(results/ippo-entropy-12m), paired.
+(results/ippo-entropy-12m), and φ ≤ 10° with a smaller bonus (results/dlcf-phi10-entropy002-12m),
+paired.
 """
 import importlib.util
 from pathlib import Path
@@ -31,11 +32,13 @@ ARMS = [
     ("IPPO", lambda s: ROOT / f"results/lcf20-linear-12m/runs/ippo-s{s}"),
     ("φ ≤ 10°, entropy 0.005", lambda s: ROOT / f"results/dlcf-phi10-entropy-12m/runs/phi10-ent005-s{s}"),
     ("IPPO, entropy 0.005", lambda s: ROOT / f"results/ippo-entropy-12m/runs/ippo-ent005-s{s}"),
+    ("φ ≤ 10°, entropy 0.002", lambda s: ROOT / f"results/dlcf-phi10-entropy002-12m/runs/phi10-ent002-s{s}"),
 ]
 # (arm, baseline) pairs of the paired differences.
 PAIRS = [("φ ≤ 10°", "IPPO"), ("φ ≤ 10°", "φ ≤ 20°"),
          ("φ ≤ 10°, entropy 0.005", "φ ≤ 10°"), ("IPPO, entropy 0.005", "IPPO"),
-         ("φ ≤ 10°, entropy 0.005", "IPPO, entropy 0.005"), ("φ ≤ 10°, entropy 0.005", "IPPO")]
+         ("φ ≤ 10°, entropy 0.005", "IPPO, entropy 0.005"), ("φ ≤ 10°, entropy 0.005", "IPPO"),
+         ("φ ≤ 10°, entropy 0.002", "φ ≤ 10°"), ("φ ≤ 10°, entropy 0.002", "IPPO")]
 
 
 def run_measures(run_dir, marks=MARKS):
