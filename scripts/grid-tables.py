@@ -78,6 +78,28 @@ def read_progress(run_dir):
     return lines
 
 
+def smoothed_scene_success(lines, episodes=100):
+    """MetaDrive's training success smoothed as CoPO smoothed it, over the last `episodes`
+    scene episodes (at least; whole progress lines apart), from the lines' `scene_totals`:
+    (agent_steps, rate) per line with that many episodes of its process behind it. Empty for
+    runs written before `scene_totals` existed."""
+    out, start = [], 0
+    for i, line in enumerate(lines):
+        totals = line.get("scene_totals")
+        if not totals:
+            return []
+        # A resumed process counts from 0 again: its lines window among themselves.
+        if i > start and totals["scene_episodes"] < lines[i - 1]["scene_totals"]["scene_episodes"]:
+            start = i
+        here = totals["scene_episodes"]
+        behind = [{"scene_episodes": 0, "success": 0.0}] + [p["scene_totals"] for p in lines[start:i]]
+        base = next((t for t in reversed(behind) if t["scene_episodes"] <= here - episodes), None)
+        if base is not None:
+            out.append((line["agent_steps"],
+                        (totals["success"] - base["success"]) / (here - base["scene_episodes"])))
+    return out
+
+
 def read_eval(run_dir, scene, seed, actions):
     suffix = "" if actions == "mean" else f"-{actions}"
     path = run_dir / "eval" / f"eval-{scene}-seed{seed}{suffix}.json"

@@ -15,6 +15,7 @@
 //! | `accepted_agent_steps`, `dropped_agent_steps` | agent-steps this process accepted, and those it dropped by reason (`stale`, `shutdown`, `update_failed`): the rest were trained on |
 //! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
 //! | `scene_window.*` | MetaDrive's (CoPO's) rates over the last `run.stats_window_scene_episodes` scene episodes: per scene episode the share of its agents with that outcome, averaged: `scene_episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_agents` (agent episodes per scene episode), `mean_steps` |
+//! | `scene_totals.*` | the sums behind MetaDrive's rates over every scene episode this process received: `scene_episodes`, and per outcome (`success`, `crash`, `out_of_road`, `timeout`) the sum of its per-scene-episode shares. The rate over the scene episodes between two lines of one process is the difference of their sums over the difference of their counts: CoPO's smoothing over 100 environment episodes, or any other, afterwards |
 //! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, `kl` and `kl_coef` (the adaptive KL penalty's, 0 without one), the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions), `lagrange_multiplier` (PPO-Lagrangian's λ, 0 when off), and DQN's `epsilon` and `q_mean` (0 for PPO; DQN's TD loss is `value_loss`) |
 //!
 //! Fields are only ever added: every reader takes a missing field as its default. The same
@@ -24,7 +25,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::stats::{SceneWindowSummary, WindowSummary};
+use crate::stats::{SceneTotals, SceneWindowSummary, WindowSummary};
 
 /// One line of `progress.jsonl` (written by the trainer, read by `learner report`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -50,6 +51,7 @@ pub struct ProgressLine {
     pub dropped_agent_steps: BTreeMap<String, u64>,
     pub window: WindowSummary,
     pub scene_window: SceneWindowSummary,
+    pub scene_totals: SceneTotals,
     pub lcf: Option<LcfProgress>,
     pub update: Option<UpdateProgress>,
 }

@@ -138,6 +138,23 @@ impl EpisodeWindow {
 pub struct SceneEpisodeWindow {
     capacity: usize,
     episodes: VecDeque<SceneEpisodeStats>,
+    totals: SceneTotals,
+}
+
+/// Sums over every scene episode this process received, so that a reader can take MetaDrive's
+/// rates over any window afterwards: CoPO smoothed over 100 environment episodes, the live
+/// window is shorter, and a short window's noise alone moves "the lowest after the best". The
+/// rate over the scene episodes between two lines is the difference of their sums over the
+/// difference of their counts. Serialised as the `scene_totals` object of `progress.jsonl`.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct SceneTotals {
+    pub scene_episodes: u64,
+    /// Per outcome, the sum over scene episodes of its share of the episode's agents.
+    pub success: f64,
+    pub crash: f64,
+    pub out_of_road: f64,
+    pub timeout: f64,
 }
 
 /// Aggregates of the scene episodes in the window: each rate is the mean over scene episodes
@@ -162,12 +179,23 @@ impl SceneEpisodeWindow {
         SceneEpisodeWindow {
             capacity: capacity.max(1),
             episodes: VecDeque::with_capacity(capacity),
+            totals: SceneTotals::default(),
         }
+    }
+
+    pub fn totals(&self) -> &SceneTotals {
+        &self.totals
     }
 
     pub fn record(&mut self, episodes: &[SceneEpisodeStats]) {
         // Scene episodes without agents say nothing about the policy.
         for episode in episodes.iter().filter(|e| e.agents() > 0) {
+            let totals = &mut self.totals;
+            totals.scene_episodes += 1;
+            totals.success += episode.share(Outcome::Success);
+            totals.crash += episode.share(Outcome::Crash);
+            totals.out_of_road += episode.share(Outcome::OutOfRoad);
+            totals.timeout += episode.share(Outcome::Timeout);
             if self.episodes.len() == self.capacity {
                 self.episodes.pop_front();
             }
@@ -292,6 +320,13 @@ mod tests {
         assert!((s.crash_rate - 0.275).abs() < 1e-12);
         assert!((s.timeout_rate - 0.3).abs() < 1e-12);
         assert_eq!((s.mean_agents, s.mean_steps), (52.0, 1000.0));
+        // The totals keep the episode the window dropped: 0/10 + 3/4 + 10/100 successes.
+        let t = w.totals();
+        assert_eq!(t.scene_episodes, 3);
+        assert!((t.success - 0.85).abs() < 1e-12, "{}", t.success);
+        assert!((t.crash - 1.55).abs() < 1e-12, "{}", t.crash);
+        assert!((t.timeout - 0.6).abs() < 1e-12, "{}", t.timeout);
+        assert_eq!(t.out_of_road, 0.0);
         assert_eq!(
             SceneEpisodeWindow::new(5).summary(),
             SceneWindowSummary::default()

@@ -439,6 +439,7 @@ impl Trainer {
                 .collect(),
             window: summary,
             scene_window: scenes,
+            scene_totals: reporter.scenes.totals().clone(),
             lcf: reporter.lcf.as_ref().map(LcfSnapshot::to_progress),
             update: reporter.update.clone(),
         };

@@ -108,3 +108,22 @@ def test_a_rerun_replaces_the_grids_run_only_when_asked(tmp_path):
             for line in out.splitlines() if line.startswith("| ")}
     # Still two CL seeds, the first now the re-run's last window 0.9 (with seed 2's 0.6).
     assert cells(rows["CL|2"])[3] == f"0.75 ± {T1 * 0.15:.2f}"
+
+
+def test_smoothed_success_windows_the_scene_totals_and_restarts_after_a_resume():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("grid_tables", SCRIPT)
+    grid_tables = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(grid_tables)
+
+    def line(steps, episodes, success):
+        return {"agent_steps": steps, "scene_totals": {"scene_episodes": episodes, "success": success}}
+    lines = [line(1, 40, 20.0), line(2, 100, 50.0), line(3, 150, 100.0), line(4, 210, 160.0),
+             line(5, 30, 30.0), line(6, 120, 60.0)]  # the process resumed at the fifth line
+    smoothed = grid_tables.smoothed_scene_success(lines, episodes=100)
+    assert [s for s, _ in smoothed] == [2, 3, 4, 6]
+    # From the process start, then from the latest line at least 100 episodes back.
+    expected = [50 / 100, (100 - 20) / (150 - 40), (160 - 50) / (210 - 100), 60 / 120]
+    assert all(abs(r - e) < 1e-12 for (_, r), e in zip(smoothed, expected)), smoothed
+    # Runs written before scene_totals existed have no smoothed curve.
+    assert grid_tables.smoothed_scene_success([{"agent_steps": 1, "scene_window": {}}]) == []
