@@ -12,7 +12,8 @@ with --replace the later one's run replaces the earlier's (a method re-run at ne
 Then, per run, progress.jsonl
 and the evaluation JSON of `actor eval` (mean action, and sampled where present). Prints, in
 Markdown: every run's figures, Table 1 per scene, each method against IPPO of the same seed, and the training
-curves at CoPO's reference environment steps. `learner report` (the grid's report/) covers
+curves at CoPO's reference environment steps (for runs with progress.jsonl's `scene_totals`, a
+second row smoothed over 100 scene episodes, as CoPO's curves are). `learner report` (the grid's report/) covers
 one run at a time and the 95 % intervals of one evaluation; these tables are over seeds.
 Standard library only, so it runs without the venv.
 """
@@ -33,6 +34,10 @@ METHOD_LABEL = {"cl": "CL", "ippo": "IPPO", "ccppo-mf": "CCPPO-MF",
                 "ccppo-concat": "CCPPO-Concat", "copo": "CoPO", "dynamic-lcf": "dynamic LCF"}
 SCENE_AGENTS = {"intersection": 30, "roundabout": 40}
 ENV_STEP_MARKS = [50_000, 100_000, 150_000, 200_000]
+# CoPO's smoothing of its curves (RLlib's metrics_smoothing_episodes): the reference rows are
+# means over the last 100 environment episodes, where the runs' own rows are their windows of
+# run.stats_window_scene_episodes.
+SMOOTHING = 100
 # CoPO's published curves (RLlib on MetaDrive 0.2.5, 8 seeds; shared/reference/metadrive-copo.md).
 REFERENCE = [
     ("intersection", "*CoPO's IPPO on MetaDrive (reference)*",
@@ -78,10 +83,10 @@ def read_progress(run_dir):
     return lines
 
 
-def smoothed_scene_success(lines, episodes=100):
+def smoothed_scene_success(lines, episodes=100, key="agent_steps"):
     """MetaDrive's training success smoothed as CoPO smoothed it, over the last `episodes`
     scene episodes (at least; whole progress lines apart), from the lines' `scene_totals`:
-    (agent_steps, rate) per line with that many episodes of its process behind it. Empty for
+    (line[key], rate) per line with that many episodes of its process behind it. Empty for
     runs written before `scene_totals` existed."""
     out, start = [], 0
     for i, line in enumerate(lines):
@@ -95,7 +100,7 @@ def smoothed_scene_success(lines, episodes=100):
         behind = [{"scene_episodes": 0, "success": 0.0}] + [p["scene_totals"] for p in lines[start:i]]
         base = next((t for t in reversed(behind) if t["scene_episodes"] <= here - episodes), None)
         if base is not None:
-            out.append((line["agent_steps"],
+            out.append((line[key],
                         (totals["success"] - base["success"]) / (here - base["scene_episodes"])))
     return out
 
@@ -131,6 +136,7 @@ class Run:
         self.phi = (last.get("lcf") or {}).get("mean_deg")
         self.mean_eval = read_eval(self.dir, self.scene, eval_seed, "mean")
         self.sample_eval = read_eval(self.dir, self.scene, eval_seed, "sample")
+        self.smoothed = smoothed_scene_success(self.progress, SMOOTHING, key="env_steps")
 
     def eval_metric(self, actions, name):
         result = self.mean_eval if actions == "mean" else self.sample_eval
@@ -142,10 +148,15 @@ class Run:
                   for k in ("success", "crash", "out_of_road")]
         return None if None in shares else 1.0 - sum(shares)
 
-    def success_at(self, env_steps):
-        """The training window at the last progress line by env_steps (None: not reached)."""
+    def success_at(self, env_steps, smoothed=False):
+        """The training window at the last progress line by env_steps, or with `smoothed` the
+        success over the SMOOTHING scene episodes before it (None: not reached, or no
+        scene_totals to smooth from)."""
         if self.progress[-1]["env_steps"] < env_steps:
             return None
+        if smoothed:
+            before = [rate for steps, rate in self.smoothed if steps <= env_steps]
+            return before[-1] if before else None
         return [p for p in self.progress if p["env_steps"] <= env_steps][-1]["scene_window"][
             "success_rate"]
 
@@ -252,12 +263,17 @@ def curves(runs, scenes):
     for scene in scenes:
         for method in sorted({r.method for r in runs if r.scene == scene} - {"cl"}):
             rs = [r for r in runs if r.scene == scene and r.method == method]
-            cells = []
-            for mark in ENV_STEP_MARKS:
-                values = [r.success_at(mark) for r in rs]
-                # A mark some seed did not reach is left out rather than averaged over fewer.
-                cells.append("–" if None in values else fmt(values))
-            print(f"| {scene} | {method} | " + " | ".join(cells) + " |")
+            for smoothed in (False, True):
+                # Runs written before scene_totals have no smoothed row.
+                if smoothed and not all(r.smoothed for r in rs):
+                    continue
+                cells = []
+                for mark in ENV_STEP_MARKS:
+                    values = [r.success_at(mark, smoothed) for r in rs]
+                    # A mark some seed did not reach is left out rather than averaged over fewer.
+                    cells.append("–" if None in values else fmt(values))
+                label = f"{method}, {SMOOTHING} scene episodes" if smoothed else method
+                print(f"| {scene} | {label} | " + " | ".join(cells) + " |")
     for scene, label, points in REFERENCE:
         if scene in scenes:
             cells = [f"{points[m]:.2f}" if m in points else "–" for m in ENV_STEP_MARKS]

@@ -94,6 +94,27 @@ def test_paired_differences_and_reference_curves(tmp_path):
     assert "| intersection | cl |" not in out.split("reference curves")[1]
 
 
+def test_runs_with_scene_totals_get_a_curve_smoothed_as_copos(tmp_path):
+    make_grid(tmp_path)
+    # IPPO's lines at 50k, 100k, 150k env steps with (scene episodes, summed success) behind them.
+    totals = {1: [(60, 30.0), (120, 72.0), (180, 120.0)], 2: [(60, 12.0), (120, 48.0), (180, 108.0)]}
+    for seed, sums in totals.items():
+        path = tmp_path / "runs" / f"ippo-intersection-s{seed}" / "progress.jsonl"
+        lines = [json.loads(line) for line in path.read_text().splitlines()]
+        for line, (episodes, success) in zip(lines, sums):
+            line["scene_totals"] = {"scene_episodes": episodes, "success": success}
+        path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    rows, out = tables(tmp_path)
+    smoothed = cells(rows["intersection|ippo, 100 scene episodes"])
+    # 50k: fewer than 100 episodes behind; 100k: all 120 (0.6, 0.4); 150k: the last 120 (0.75, 0.8).
+    assert smoothed[2] == "–"
+    assert smoothed[3] == f"0.50 ± {T1 * 0.1:.2f}"
+    assert smoothed[4] == f"0.78 ± {T1 * 0.025:.2f}"
+    # The runs' own windows keep their row, and CL's runs, without totals, get no smoothed row.
+    assert cells(rows["intersection|ippo"])[3] == f"0.60 ± {T1 * 0.1:.2f}"
+    assert "cl, 100 scene episodes" not in out
+
+
 def test_a_rerun_replaces_the_grids_run_only_when_asked(tmp_path):
     make_grid(tmp_path / "grid")
     # CL seed 1 re-run elsewhere (new defaults), listed in a grid.tsv-shaped file of its own.

@@ -25,6 +25,7 @@ WINDOW = 20  # run.stats_window_scene_episodes of every run below
 SMOOTHING = 100  # CoPO's: RLlib's metrics_smoothing_episodes
 ARMS = [
     ("dynamic LCF, φ ≤ 10° (defaults), 12 M", "results/dlcf-phi10-12m/runs/phi10-s{}"),
+    ("the same again, with scene_totals", "results/dlcf-12m-smoothed/runs/dlcf-s{}"),
     ("dynamic LCF, φ ≤ 10°, entropy 0.002, 12 M", "results/dlcf-phi10-entropy002-12m/runs/phi10-ent002-s{}"),
     ("dynamic LCF, φ ≤ 10°, entropy 0.005, 12 M", "results/dlcf-phi10-entropy-12m/runs/phi10-ent005-s{}"),
     ("dynamic LCF, φ ≤ 20°, 12 M", "results/dlcf-scene-phi20-linear-12m/runs/scene-phi20-linear-s{}"),
@@ -32,7 +33,6 @@ ARMS = [
     ("IPPO, entropy 0.005, 12 M", "results/ippo-entropy-12m/runs/ippo-ent005-s{}"),
     ("IPPO (defaults), 15 M", "results/ippo-15m-unseen/runs/linear-s{}"),
     ("IPPO, entropy 0.005, 15 M", "results/ippo-entropy-15m/runs/ippo-ent005-s{}"),
-    ("IPPO, entropy 0.002, 15 M", "results/ippo-entropy002-15m/runs/ippo-ent002-s{}"),
 ]
 SEEDS = [1, 2, 3]
 
