@@ -83,7 +83,7 @@ def read_progress(run_dir):
     return lines
 
 
-def smoothed_scene_success(lines, episodes=100, key="agent_steps"):
+def smoothed_scene_success(lines, episodes=SMOOTHING, key="agent_steps"):
     """MetaDrive's training success smoothed as CoPO smoothed it, over the last `episodes`
     scene episodes (at least; whole progress lines apart), from the lines' `scene_totals`:
     (line[key], rate) per line with that many episodes of its process behind it. Empty for

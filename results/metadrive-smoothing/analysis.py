@@ -22,7 +22,7 @@ grid_tables = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(grid_tables)
 
 WINDOW = 20  # run.stats_window_scene_episodes of every run below
-SMOOTHING = 100  # CoPO's: RLlib's metrics_smoothing_episodes
+SMOOTHING = grid_tables.SMOOTHING  # CoPO's: RLlib's metrics_smoothing_episodes
 ARMS = [
     ("dynamic LCF, φ ≤ 10° (defaults), 12 M", "results/dlcf-phi10-12m/runs/phi10-s{}"),
     ("the same again, with scene_totals", "results/dlcf-12m-smoothed/runs/dlcf-s{}"),
