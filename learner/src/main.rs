@@ -105,6 +105,10 @@ struct ReportArgs {
         default_value = "1000000,2500000,5000000,7500000,10000000,15000000"
     )]
     marks: Vec<u64>,
+    /// Scene episodes the smoothed row of that table averages over (from progress lines'
+    /// scene_totals): CoPO smoothed its curves over 100 environment episodes.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..))]
+    smoothing_scene_episodes: u64,
     /// Evaluation seeds (`actor eval --seed`) whose results count, comma-separated; by
     /// default every one found in a run's eval/, averaged per run. A group whose runs do not
     /// all have one of these falls back to its training windows.
@@ -252,6 +256,7 @@ fn main() -> anyhow::Result<()> {
                 min_window_episodes: args.min_window_episodes,
                 group_by_dir: args.group_by_dir,
                 marks: args.marks,
+                smoothing_scene_episodes: args.smoothing_scene_episodes,
                 eval_seeds: args.eval_seeds,
                 ..ReportOptions::default()
             };

@@ -87,6 +87,58 @@ pub fn curve(run: &Run, key: &str) -> Vec<(f64, f64)> {
         .collect()
 }
 
+/// MetaDrive's training success smoothed as CoPO smoothed it: at each line with at least
+/// `episodes` scene episodes of its process behind it, the mean per-scene-episode share of
+/// arrivals over the newest of them (at least `episodes`, whole progress lines apart), from
+/// the lines' `scene_totals`. Empty for runs written before the totals existed. A resumed
+/// process counts its totals from 0 again, so its lines window among themselves.
+pub fn smoothed_scene_success(run: &Run, episodes: u64) -> Vec<(f64, f64)> {
+    let episodes = episodes.max(1);
+    let mut curve = Vec::new();
+    // (scene episodes, success sum) of the process's earlier lines, from its start at 0.
+    let mut behind: Vec<(u64, f64)> = vec![(0, 0.0)];
+    let mut base = 0;
+    for line in &run.lines {
+        let totals = &line.scene_totals;
+        if behind
+            .last()
+            .is_some_and(|&(n, _)| totals.scene_episodes < n)
+        {
+            behind = vec![(0, 0.0)];
+            base = 0;
+        }
+        if let Some(limit) = totals.scene_episodes.checked_sub(episodes) {
+            while behind.get(base + 1).is_some_and(|&(n, _)| n <= limit) {
+                base += 1;
+            }
+            let (n, success) = behind[base];
+            curve.push((
+                line.agent_steps as f64,
+                (totals.success - success) / (totals.scene_episodes - n) as f64,
+            ));
+        }
+        behind.push((totals.scene_episodes, totals.success));
+    }
+    curve
+}
+
+/// The lowest value of a curve after its best, as a share of the best (the issue's "never
+/// below 80 % of its best"); None for an empty curve or a best of 0.
+pub fn held_after_best(curve: &[(f64, f64)]) -> Option<f64> {
+    let (best_at, best) = curve.iter().enumerate().fold(
+        None,
+        |best: Option<(usize, f64)>, (i, &(_, y))| match best {
+            Some((_, b)) if b >= y => best,
+            _ => Some((i, y)),
+        },
+    )?;
+    let lowest = curve[best_at..]
+        .iter()
+        .map(|&(_, y)| y)
+        .fold(f64::INFINITY, f64::min);
+    (best > 0.0).then(|| lowest / best)
+}
+
 /// Linear interpolation of a curve (sorted by x) at `x`; None outside its range.
 pub fn interpolate(points: &[(f64, f64)], x: f64) -> Option<f64> {
     let first = points.first()?;
@@ -264,6 +316,64 @@ mod tests {
         assert!(super::band(&[&a], "no_such_metric", 5).is_empty());
         let disjoint = run(3, vec![line(200, 5, 0.5, 1.0), line(300, 5, 0.5, 2.0)]);
         assert!(super::band(&[&b, &disjoint], "success_rate", 5).is_empty());
+    }
+
+    /// A line whose process has seen `scene_episodes` scene episodes with `success` arrivals
+    /// (sum of per-episode shares) in all.
+    fn totals_line(agent_steps: u64, scene_episodes: u64, success: f64) -> ProgressLine {
+        ProgressLine {
+            agent_steps,
+            scene_totals: crate::stats::SceneTotals {
+                scene_episodes,
+                success,
+                ..Default::default()
+            },
+            ..ProgressLine::default()
+        }
+    }
+
+    #[test]
+    fn smoothing_takes_the_newest_whole_lines_that_hold_enough_episodes() {
+        let r = run(
+            1,
+            vec![
+                totals_line(10, 4, 1.0),
+                totals_line(20, 10, 4.0),
+                totals_line(30, 12, 6.0),
+                totals_line(40, 16, 10.0),
+                // A resumed process: its totals start again from 0.
+                totals_line(50, 3, 3.0),
+                totals_line(60, 11, 3.0),
+            ],
+        );
+        let curve = smoothed_scene_success(&r, 10);
+        // x = 20: all 10 from the start; x = 30: since the line at 0 (12 episodes, the
+        // line at 4 would leave 8); x = 40: since 4 (12 episodes, 9 successes); the resumed
+        // process is windowed alone, reaching 10 at x = 60: 3 / 11.
+        let expected = [(20.0, 0.4), (30.0, 0.5), (40.0, 0.75), (60.0, 3.0 / 11.0)];
+        assert_eq!(curve.len(), expected.len(), "{curve:?}");
+        for (got, want) in curve.iter().zip(expected) {
+            assert_eq!(got.0, want.0);
+            assert!((got.1 - want.1).abs() < 1e-12, "{curve:?}");
+        }
+        let old = run(2, vec![line(10, 5, 0.5, 1.0), line(20, 5, 0.5, 2.0)]);
+        assert!(smoothed_scene_success(&old, 10).is_empty());
+    }
+
+    #[test]
+    fn held_is_the_lowest_after_the_first_best_over_the_best() {
+        let c = [
+            (0.0, 0.9),
+            (1.0, 0.2),
+            (2.0, 1.0),
+            (3.0, 0.6),
+            (4.0, 0.8),
+            (5.0, 1.0),
+        ];
+        assert_eq!(held_after_best(&c), Some(0.6));
+        assert_eq!(held_after_best(&[(0.0, 0.2), (1.0, 0.4)]), Some(1.0));
+        assert_eq!(held_after_best(&[]), None);
+        assert_eq!(held_after_best(&[(0.0, 0.0)]), None);
     }
 
     #[test]

@@ -56,6 +56,10 @@ pub struct ReportOptions {
     pub group_by_dir: bool,
     /// Agent-step counts of the table of training success at marks.
     pub marks: Vec<u64>,
+    /// Scene episodes that table's second row per method averages over, from the progress
+    /// lines' `scene_totals`: CoPO's smoothing (RLlib's `metrics_smoothing_episodes`), so the
+    /// row reads against the reference curve whatever the runs' live window was.
+    pub smoothing_scene_episodes: u64,
     /// Evaluation seeds whose `actor eval` results count; empty: every seed found, pooled
     /// per run (a run evaluated on a validation and an unseen seed averages the two).
     pub eval_seeds: Vec<u64>,
@@ -73,6 +77,7 @@ impl Default for ReportOptions {
             marks: vec![
                 1_000_000, 2_500_000, 5_000_000, 7_500_000, 10_000_000, 15_000_000,
             ],
+            smoothing_scene_episodes: 100,
             eval_seeds: Vec::new(),
         }
     }
@@ -118,9 +123,18 @@ pub struct GroupSummary {
     pub best_success: Option<(f64, Reach)>,
     /// φ of the final update, for methods whose φ is not 0 throughout.
     pub lcf: Option<LcfSummary>,
-    /// Training success in MetaDrive's definition at each of the options' agent-step marks
-    /// that every seed reached: (mark, mean ± interval over seeds).
+    /// Training success in MetaDrive's definition, over the runs' live scene-episode window,
+    /// at each of the options' agent-step marks that every seed reached: (mark, mean ±
+    /// interval over seeds).
     pub success_at_marks: Vec<(u64, Estimate)>,
+    /// The same smoothed over `smoothing_scene_episodes` (empty unless every seed's lines
+    /// have `scene_totals`).
+    pub smoothed_success_at_marks: Vec<(u64, Estimate)>,
+    /// The lowest training success in MetaDrive's definition after its best, as a share of
+    /// the best, over the whole run: mean ± interval over seeds, for the live window and for
+    /// the smoothed curve (None unless every seed has that curve).
+    pub held_after_best: Option<Estimate>,
+    pub smoothed_held_after_best: Option<Estimate>,
     /// Share of evaluation episodes per ending (`actor eval`'s `endings`), mean ± interval
     /// over the seeds whose evaluations have them.
     pub endings: BTreeMap<String, Estimate>,
@@ -324,6 +338,14 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
             _ => Some(b),
         });
     let n = members.len() as f64;
+    let windowed: Vec<Vec<(f64, f64)>> = members
+        .iter()
+        .map(|r| aggregate::curve(r, "scene_success_rate"))
+        .collect();
+    let smoothed: Vec<Vec<(f64, f64)>> = members
+        .iter()
+        .map(|r| aggregate::smoothed_scene_success(r, options.smoothing_scene_episodes))
+        .collect();
     GroupSummary {
         scene: scene.to_string(),
         method: method.to_string(),
@@ -346,23 +368,35 @@ fn group(scene: &str, method: &str, members: &[&Run], options: &ReportOptions) -
         best_success,
         lcf: final_lcf(members),
         endings: ending_shares(members),
-        success_at_marks: options
-            .marks
-            .iter()
-            .filter_map(|&mark| {
-                let values: Vec<f64> = members
-                    .iter()
-                    .map(|r| {
-                        aggregate::interpolate(
-                            &aggregate::curve(r, "scene_success_rate"),
-                            mark as f64,
-                        )
-                    })
-                    .collect::<Option<_>>()?;
-                Some((mark, mean_t(&values)))
-            })
-            .collect(),
+        success_at_marks: at_marks(&windowed, &options.marks),
+        smoothed_success_at_marks: at_marks(&smoothed, &options.marks),
+        held_after_best: held_across_seeds(&windowed),
+        smoothed_held_after_best: held_across_seeds(&smoothed),
     }
+}
+
+/// Each seed's curve read at every mark all of them reach: (mark, mean ± interval over seeds).
+fn at_marks(curves: &[Vec<(f64, f64)>], marks: &[u64]) -> Vec<(u64, Estimate)> {
+    marks
+        .iter()
+        .filter_map(|&mark| {
+            let values: Vec<f64> = curves
+                .iter()
+                .map(|c| aggregate::interpolate(c, mark as f64))
+                .collect::<Option<_>>()?;
+            (!values.is_empty()).then(|| (mark, mean_t(&values)))
+        })
+        .collect()
+}
+
+/// Mean ± interval over seeds of each curve's lowest after its best, as a share of the best;
+/// None unless every seed has a curve.
+fn held_across_seeds(curves: &[Vec<(f64, f64)>]) -> Option<Estimate> {
+    let values: Vec<f64> = curves
+        .iter()
+        .map(|c| aggregate::held_after_best(c))
+        .collect::<Option<_>>()?;
+    (!values.is_empty()).then(|| mean_t(&values))
 }
 
 /// Each ending's share of a run's evaluated episodes, mean ± interval over the runs whose
@@ -588,7 +622,7 @@ fn markdown(summary: &Summary, options: &ReportOptions) -> String {
             g.seeds.len()
         );
     }
-    marks_table(&mut md, &summary.groups);
+    marks_table(&mut md, &summary.groups, options.smoothing_scene_episodes);
     lcf_table(&mut md, &summary.groups);
     endings_table(&mut md, &summary.groups);
     md.push_str("\n## Figures\n\nLines: mean over seeds of the training window (the last `run.stats_window_episodes` episodes) against agent-steps consumed; shading: range over seeds.\n\n");
@@ -613,39 +647,68 @@ const COPO_IPPO_INTERSECTION: [(u64, f64); 5] = [
     (15_000_000, 0.70),
 ];
 
-fn marks_table(md: &mut String, groups: &[GroupSummary]) {
+fn marks_table(md: &mut String, groups: &[GroupSummary], smoothing: u64) {
     let marks: std::collections::BTreeSet<u64> = groups
         .iter()
-        .flat_map(|g| g.success_at_marks.iter().map(|(m, _)| *m))
+        .flat_map(|g| {
+            g.success_at_marks
+                .iter()
+                .chain(&g.smoothed_success_at_marks)
+                .map(|(m, _)| *m)
+        })
         .collect();
-    if marks.is_empty() {
+    if marks.is_empty() && groups.iter().all(|g| g.held_after_best.is_none()) {
         return;
     }
-    md.push_str(
+    let _ = write!(
+        md,
         "\n## Training success at agent-step marks (MetaDrive's definition)\n\n\
-         Per scene episode the share of its agents that arrived, averaged over the scene-episode \
-         window of `progress.jsonl` (`run.stats_window_scene_episodes`; the stochastic training \
-         policy), read off each seed's curve at the mark; mean ± 95 % over seeds. The \
-         reference row is CoPO's IPPO on MetaDrive's intersection (8 seeds, its learning-curve \
-         figure; CoPO's environment steps × ≈ 25 agent-steps; smoothed over 100 environment \
-         episodes, which lags its early curve).\n\n| Scene | Method |",
+         Per scene episode the share of its agents that arrived (the stochastic training \
+         policy), read off each seed's curve at the mark; mean ± 95 % over seeds. Per method \
+         two rows: the runs' live window (`scene_window` of `progress.jsonl`, the last \
+         `run.stats_window_scene_episodes`), and the same smoothed over {smoothing} scene \
+         episodes from the lines' `scene_totals` as CoPO smoothed its curves (runs written \
+         before the totals existed have no such row). The reference row is CoPO's IPPO on \
+         MetaDrive's intersection (8 seeds, its learning-curve figure; CoPO's environment \
+         steps × ≈ 25 agent-steps; smoothed over 100 environment episodes). *Held*: the \
+         lowest value after the curve's best, as a share of the best, over the whole run.\n\n\
+         | Scene | Method |"
     );
     for mark in &marks {
         let _ = write!(md, " {} |", plot::steps_label(*mark as f64));
     }
-    md.push_str("\n|---|---|");
-    md.push_str(&"---|".repeat(marks.len()));
+    md.push_str(" Held |\n|---|---|");
+    md.push_str(&"---|".repeat(marks.len() + 1));
     md.push('\n');
+    let row = |md: &mut String, scene: &str, name: &str, at: &[(u64, Estimate)], held| {
+        let _ = write!(md, "| {scene} | {name} |");
+        for mark in &marks {
+            let value = at.iter().find(|(m, _)| m == mark);
+            let _ = write!(md, " {} |", cell(value.map(|(_, e)| e)));
+        }
+        let _ = writeln!(md, " {} |", cell(held));
+    };
     let mut scenes: Vec<&String> = groups.iter().map(|g| &g.scene).collect();
     scenes.dedup();
     for scene in scenes {
         for g in groups.iter().filter(|g| &g.scene == scene) {
-            let _ = write!(md, "| {} | {} |", g.scene, g.method);
-            for mark in &marks {
-                let value = g.success_at_marks.iter().find(|(m, _)| m == mark);
-                let _ = write!(md, " {} |", cell(value.map(|(_, e)| e)));
+            row(
+                md,
+                scene,
+                &g.method,
+                &g.success_at_marks,
+                g.held_after_best.as_ref(),
+            );
+            if g.smoothed_held_after_best.is_some() || !g.smoothed_success_at_marks.is_empty() {
+                let name = format!("{}, {smoothing} scene episodes", g.method);
+                row(
+                    md,
+                    scene,
+                    &name,
+                    &g.smoothed_success_at_marks,
+                    g.smoothed_held_after_best.as_ref(),
+                );
             }
-            md.push('\n');
         }
         if scene.starts_with("intersection") {
             let _ = write!(md, "| {scene} | *CoPO's IPPO (MetaDrive)* |");
@@ -657,7 +720,7 @@ fn marks_table(md: &mut String, groups: &[GroupSummary]) {
                     reference.map_or("—".to_string(), |(_, v)| format!("*{v:.2}*"))
                 );
             }
-            md.push('\n');
+            md.push_str(" — |\n");
         }
     }
 }
@@ -857,6 +920,9 @@ mod tests {
             best_success: None,
             lcf: Some(lcf),
             success_at_marks: Vec::new(),
+            smoothed_success_at_marks: Vec::new(),
+            held_after_best: None,
+            smoothed_held_after_best: None,
             endings: BTreeMap::new(),
         };
         lcf_table(&mut markdown, &[group]);
@@ -890,7 +956,15 @@ mod tests {
 
     #[test]
     fn success_at_marks_reads_every_seeds_curve_and_sits_beside_the_reference() {
-        let a = run_with_scene_success(1, &[(1_000_000, 0.1), (3_000_000, 0.3), (6_000_000, 0.6)]);
+        let a = run_with_scene_success(
+            1,
+            &[
+                (1_000_000, 0.1),
+                (3_000_000, 0.3),
+                (6_000_000, 0.6),
+                (7_000_000, 0.45),
+            ],
+        );
         let b = run_with_scene_success(2, &[(1_000_000, 0.2), (6_000_000, 0.7)]);
         let short = run_with_scene_success(3, &[(1_000_000, 0.9), (4_000_000, 0.9)]);
         let options = ReportOptions {
@@ -906,11 +980,57 @@ mod tests {
         // A mark one seed did not reach is left out rather than averaged over fewer seeds.
         let g3 = group("intersection", "ippo", &[&a, &b, &short], &options);
         assert_eq!(g3.success_at_marks.len(), 1);
+        // Seed 1 falls from 0.6 to 0.45 after its best; seed 2 never falls: held 0.75 and 1.
+        let held = g.held_after_best.unwrap();
+        assert!((held.value - 0.875).abs() < 1e-9, "{}", held.value);
+        assert!(g.smoothed_held_after_best.is_none() && g.smoothed_success_at_marks.is_empty());
         let mut md = String::new();
-        marks_table(&mut md, &[g]);
+        marks_table(&mut md, &[g], 100);
         assert!(md.contains("| intersection | ippo | 0.3000 ± "), "{md}");
+        assert!(md.contains("| 0.8750 ± "), "{md}");
+        assert!(!md.contains("ippo, 100 scene episodes"), "{md}");
         assert!(
             md.contains("| intersection | *CoPO's IPPO (MetaDrive)* | *0.19* | *0.50* |"),
+            "{md}"
+        );
+    }
+
+    #[test]
+    fn the_smoothed_row_reads_the_scene_totals() {
+        // 10 scene episodes per 1 M agent-steps, half of them arrivals until 3 M, all after.
+        let lines = (1..=6u64)
+            .map(|m| {
+                let success = 5.0 * m.min(3) as f64 + 10.0 * m.saturating_sub(3) as f64;
+                ProgressLine {
+                    agent_steps: m * 1_000_000,
+                    scene_totals: crate::stats::SceneTotals {
+                        scene_episodes: 10 * m,
+                        success,
+                        ..Default::default()
+                    },
+                    ..ProgressLine::default()
+                }
+            })
+            .collect();
+        let r = Run::fixture("ippo", 1, lines);
+        let options = ReportOptions {
+            marks: vec![2_500_000, 5_000_000],
+            smoothing_scene_episodes: 20,
+            ..ReportOptions::default()
+        };
+        let g = group("intersection", "ippo", &[&r], &options);
+        // Over the last 20 scene episodes: 0.5 at 2 M and 3 M, 0.75 at 4 M, 1 from 5 M on.
+        let at: Vec<(u64, f64)> = g
+            .smoothed_success_at_marks
+            .iter()
+            .map(|(m, e)| (*m, e.value))
+            .collect();
+        assert_eq!(at, [(2_500_000, 0.5), (5_000_000, 1.0)]);
+        assert_eq!(g.smoothed_held_after_best.map(|e| e.value), Some(1.0));
+        let mut md = String::new();
+        marks_table(&mut md, &[g], 20);
+        assert!(
+            md.contains("| intersection | ippo, 20 scene episodes | 0.5000 (1 seed) | 1.000 (1 seed) | 1.000 (1 seed) |"),
             "{md}"
         );
     }
