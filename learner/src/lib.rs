@@ -15,5 +15,7 @@ pub mod server;
 pub mod shm;
 pub mod stats;
 pub mod tensorboard;
+#[cfg(test)]
+mod test_rng;
 pub mod trainer;
 pub mod transport_bench;

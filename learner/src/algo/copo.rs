@@ -425,7 +425,7 @@ mod tests {
 
     #[test]
     fn an_update_moves_the_distribution_actors_receive_and_checkpoints_continue_exactly() {
-        tch::manual_seed(4);
+        let _rng = crate::test_rng::seeded(4);
         let mut learner = copo_learner();
         let start = LcfDistribution::from_metadata(
             &junction_common::weights::metadata(&learner.policy_bytes(0).unwrap()).unwrap(),
@@ -464,7 +464,7 @@ mod tests {
     /// μ of the distribution after `updates` updates with a meta step large enough to
     /// saturate tanh, starting from μ = 10°.
     fn mean_after_large_meta_steps(max_mean_deg: f32, updates: usize) -> f32 {
-        tch::manual_seed(5);
+        let _rng = crate::test_rng::seeded(5);
         let mut run = small_run();
         run.copo.max_mean_deg = max_mean_deg;
         run.copo.initial_mean_deg = 10.0;

@@ -383,6 +383,7 @@ mod tests {
 
     #[test]
     fn an_update_stores_transitions_steps_by_the_replay_ratio_and_follows_the_epsilon_schedule() {
+        let _rng = crate::test_rng::lock();
         let config = fixture_config();
         let mut learner = dqn(&config);
         assert_eq!(learner.online.epsilon(), 1.0, "ε starts at epsilon_start");
@@ -415,6 +416,7 @@ mod tests {
 
     #[test]
     fn no_gradient_step_before_learning_starts() {
+        let _rng = crate::test_rng::lock();
         let mut config = fixture_config();
         config.learning_starts = 12;
         let mut learner = dqn(&config);
@@ -428,6 +430,7 @@ mod tests {
 
     #[test]
     fn off_grid_fragments_are_counted_and_not_learned_from() {
+        let _rng = crate::test_rng::lock();
         let mut learner = dqn(&fixture_config());
         let on_grid = neighbourhood_fragment();
         let mut off_grid = neighbourhood_fragment();
@@ -445,6 +448,7 @@ mod tests {
 
     #[test]
     fn the_replay_stores_coordinated_rewards() {
+        let _rng = crate::test_rng::lock();
         let fragment = neighbourhood_fragment();
         let cooperative = LcfConfig {
             phi_deg: 90.0,
@@ -485,6 +489,7 @@ mod tests {
 
     #[test]
     fn without_its_replay_a_restored_learner_keeps_networks_optimiser_and_counters() {
+        let _rng = crate::test_rng::lock();
         let config = fixture_config();
         let mut a = dqn(&config);
         a.update(&[neighbourhood_fragment()]).unwrap();
@@ -543,7 +548,7 @@ mod tests {
     /// episode done after one step. DQN must learn Q ≈ r and act greedily at (0.5, 1).
     #[test]
     fn dqn_learns_the_best_grid_point_of_a_bandit() {
-        tch::manual_seed(0);
+        let _rng = crate::test_rng::seeded(0);
         let mut config = RunConfig::default().dqn;
         config.hidden = vec![16];
         config.batch_size = 32;

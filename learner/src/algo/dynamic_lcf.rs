@@ -562,7 +562,7 @@ mod tests {
 
     #[test]
     fn the_meta_gradient_moves_f_and_phi_is_reported_by_neighbour_count() {
-        tch::manual_seed(6);
+        let _rng = crate::test_rng::seeded(6);
         let mut learner = dynamic_learner();
         let fragment = neighbourhood_fragment();
         let net = |l: &SharedPpo<OwnObservation>| -> Vec<(String, Vec<f32>)> {

@@ -66,7 +66,7 @@ mod tests {
 
     #[test]
     fn ppo_moves_the_policy_towards_higher_reward() {
-        tch::manual_seed(0);
+        let _rng = crate::test_rng::seeded(0);
         let mut run = RunConfig::default();
         run.run.seed = 7;
         run.ppo.hidden = vec![16];
@@ -91,7 +91,7 @@ mod tests {
 
     #[test]
     fn the_learning_rate_follows_the_schedule_told_before_each_update() {
-        tch::manual_seed(2);
+        let _rng = crate::test_rng::seeded(2);
         let mut run = RunConfig::default();
         run.ppo.hidden = vec![8];
         run.ppo.lr_schedule = LrSchedule::Linear;
@@ -109,7 +109,7 @@ mod tests {
 
     #[test]
     fn checkpoint_state_restores_an_identical_learner() {
-        tch::manual_seed(1);
+        let _rng = crate::test_rng::seeded(1);
         let mut run = RunConfig::default();
         run.run.seed = 7;
         run.ppo.hidden = vec![8];

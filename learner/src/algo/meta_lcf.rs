@@ -323,7 +323,7 @@ mod tests {
 
     #[test]
     fn the_meta_gradient_matches_central_differences_of_the_global_objective() {
-        tch::manual_seed(11);
+        let _rng = crate::test_rng::seeded(11);
         let rows = 7;
         let theta = Tiny {
             w1: Tensor::randn([3, 4], F64).set_requires_grad(true),
@@ -408,7 +408,7 @@ mod tests {
 
     #[test]
     fn cross_fitted_rows_are_steered_only_by_the_other_folds_global_advantages() {
-        tch::manual_seed(13);
+        let _rng = crate::test_rng::seeded(13);
         let rows = 10;
         let policy = GaussianPolicy::new(Device::Cpu, 3, 2, &[8], -0.5);
         let obs = Tensor::randn([rows, 3], (Kind::Float, Device::Cpu));
@@ -472,7 +472,7 @@ mod tests {
 
     #[test]
     fn the_jacobian_vector_product_is_the_directional_derivative_of_each_log_prob() {
-        tch::manual_seed(12);
+        let _rng = crate::test_rng::seeded(12);
         let theta = Tiny {
             w1: Tensor::randn([3, 4], F64).set_requires_grad(true),
             w2: Tensor::randn([4, 2], F64).set_requires_grad(true),

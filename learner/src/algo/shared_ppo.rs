@@ -649,6 +649,9 @@ pub(crate) mod testing {
         make: impl Fn() -> A,
         fragment: &RolloutFragment,
     ) {
+        // Seeds only the learners' first initialisation; b is restored from a's state, and
+        // their updates draw nothing from the generator, so this needs no test_rng lock (the
+        // callers may hold it).
         tch::manual_seed(3);
         let fragment = fragment.clone();
         let mut a = make();
@@ -706,6 +709,7 @@ mod tests {
 
     #[test]
     fn the_lagrangian_option_trains_a_cost_critic_prices_cost_and_checkpoints_it() {
+        let _rng = crate::test_rng::lock();
         let mut fragment = neighbourhood_fragment();
         fragment.costs = (0..fragment.costs.len()).map(|i| (i % 2) as f32).collect();
         fragment.episodes = vec![junction_common::fragment::EpisodeStats {
@@ -753,6 +757,7 @@ mod tests {
 
     #[test]
     fn the_kl_penalty_adapts_its_coefficient_to_the_target_and_is_checkpointed() {
+        let _rng = crate::test_rng::lock();
         let fragment = neighbourhood_fragment();
         // Any update moves the policy by more than 2 · 1e-12, and by less than 1e6 / 2.
         let mut tight = kl_learner(1e-12);
@@ -862,6 +867,7 @@ mod resume_tests {
 
     #[test]
     fn a_resumed_learner_shuffles_its_next_minibatches_as_the_original_would() {
+        let _rng = crate::test_rng::lock();
         let fragment = neighbourhood_fragment();
         let mut original = shuffling_learner();
         for _ in 0..2 {
