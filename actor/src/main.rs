@@ -18,6 +18,7 @@ use junction_common::auth::Token;
 use junction_common::config::{AfterHorizon, ScenarioConfig};
 use junction_common::evaluation::{EVAL_FORMAT, EvalActions, EvalReport};
 use junction_common::scenarios;
+use junction_common::shutdown::end_by_sigint;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 
 #[derive(Parser)]
@@ -263,7 +264,12 @@ fn main() -> anyhow::Result<()> {
         }
         Some(Command::Render(args)) => render(args),
         Some(Command::Eval(args)) => evaluate(args),
-        None => run_actor(cli.run),
+        None => {
+            if run_actor(cli.run)? {
+                end_by_sigint();
+            }
+            Ok(())
+        }
     }
 }
 
@@ -439,7 +445,9 @@ enum Transport {
     Grpc(grpc::GrpcOptions),
 }
 
-fn run_actor(args: RunArgs) -> anyhow::Result<()> {
+/// Runs until the learner ends the run or a stop signal arrives; true when Ctrl-C stopped it,
+/// so that the process then ends by SIGINT ([`end_by_sigint`]).
+fn run_actor(args: RunArgs) -> anyhow::Result<bool> {
     tch::set_num_threads(args.torch_threads.max(1));
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -516,10 +524,10 @@ fn run_actor(args: RunArgs) -> anyhow::Result<()> {
             }
         };
         let result = tokio::select! {
-            result = transport.instrument(span) => result,
+            result = transport.instrument(span) => result.map(|()| false),
             signal = stop_signal() => {
                 tracing::info!(signal, "interrupted");
-                Ok(())
+                Ok(signal == "SIGINT")
             }
         };
         let _ = shutdown_tx.send(true);

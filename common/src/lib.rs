@@ -17,6 +17,7 @@ pub mod policy;
 pub mod q_policy;
 pub mod shm;
 pub mod shm_layout;
+pub mod shutdown;
 pub mod telemetry;
 pub mod weights;
 

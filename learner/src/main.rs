@@ -15,6 +15,7 @@ use tonic::service::interceptor::InterceptedService;
 use junction_common::config::{DEFAULT_TOML, DeviceChoice, Layer, RunConfig, Simulator};
 use junction_common::proto::learner_server::LearnerServer;
 use junction_common::scenarios;
+use junction_common::shutdown::end_by_sigint;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
 use junction_common::{
@@ -691,21 +692,9 @@ async fn bind(addr: &str, what: &str) -> anyhow::Result<tokio::net::TcpListener>
         .with_context(|| format!("binding the {what} address {addr}"))
 }
 
-/// Set when Ctrl-C (SIGINT), not SIGTERM, stopped `serve`. A shell script without an INT
-/// trap takes a Ctrl-C whose child exits normally as handled by the child and goes on, so a
-/// `for seed in 1 2 3; do learner serve …; done` would start its next run; ending the process
-/// by SIGINT after the clean shutdown stops the script too.
+/// Set when Ctrl-C (SIGINT), not SIGTERM, stopped `serve`: the process then ends by SIGINT
+/// ([`end_by_sigint`]) after its clean shutdown.
 static STOPPED_BY_CTRL_C: AtomicBool = AtomicBool::new(false);
-
-/// Ends the process by SIGINT with the default action, after stdout is flushed.
-fn end_by_sigint() {
-    let _ = std::io::Write::flush(&mut std::io::stdout());
-    // SAFETY: signal(2) and raise(3) with constants; nothing else runs at this point.
-    unsafe {
-        libc::signal(libc::SIGINT, libc::SIG_DFL);
-        libc::raise(libc::SIGINT);
-    }
-}
 
 /// Stops training on Ctrl-C or SIGTERM; a second signal exits at once.
 async fn stop_on_signal(stop: Arc<AtomicBool>) {

@@ -1,7 +1,7 @@
 //! Faults with real processes on loopback: an actor killed mid-stream, a learner killed and
 //! resumed on its port while its actors wait, a learner killed in the middle of writing a
-//! checkpoint, a resume under a configuration that does not fit. Every process is stopped when
-//! a test ends, however it ends.
+//! checkpoint, a resume under a configuration that does not fit, an actor stopped by a signal.
+//! Every process is stopped when a test ends, however it ends.
 
 use std::os::unix::process::ExitStatusExt;
 use std::time::Duration;
@@ -338,4 +338,45 @@ fn a_learner_killed_while_writing_a_checkpoint_resumes_from_the_previous_one() {
             .wait_exit(Duration::from_secs(60))
             .is_some_and(|s| s.success())
     );
+}
+
+#[test]
+fn an_actor_stops_cleanly_on_sigterm_and_ends_by_sigint_on_ctrl_c() {
+    let dir = TempDir::new("fault-actor-signals");
+    // No learner listens here: the actor retries, the state in which people stop actors most.
+    let learner = format!("127.0.0.1:{}", free_port());
+    for (name, signal) in [("term", libc::SIGTERM), ("int", libc::SIGINT)] {
+        let args = [
+            "--learner",
+            &learner,
+            "--connect-timeout",
+            "120",
+            "--retry-max-delay",
+            "1",
+        ]
+        .map(String::from);
+        let mut actor = Process::start(name, &bin("actor"), &args, dir.path());
+        let retrying = wait_until(Duration::from_secs(30), || {
+            actor.log().contains("learner unreachable")
+        });
+        assert!(retrying, "the actor is not retrying\n{}", actor.log_tail(20));
+        actor.signal(signal);
+        let status = actor.wait_exit(Duration::from_secs(30));
+        // SIGTERM (`docker stop`, a learner's local mode) is a normal end; after Ctrl-C a
+        // shell loop of actors stops too.
+        match signal {
+            libc::SIGTERM => assert!(
+                status.is_some_and(|s| s.success()),
+                "{status:?}\n{}",
+                actor.log_tail(20)
+            ),
+            _ => assert_eq!(
+                status.and_then(|s| s.signal()),
+                Some(libc::SIGINT),
+                "{status:?}\n{}",
+                actor.log_tail(20)
+            ),
+        }
+        assert!(actor.log().contains("interrupted"), "{}", actor.log_tail(20));
+    }
 }
