@@ -83,25 +83,40 @@ def read_progress(run_dir):
     return lines
 
 
+def without_rolled_back(lines):
+    """One history whose agent-steps only grow: a resumed learner trains on from its newest
+    checkpoint, so each line drops the lines before it that are further on than itself (the
+    training the resume rolled back), as `learner report` reads runs."""
+    kept = []
+    for line in lines:
+        while kept and kept[-1]["agent_steps"] > line["agent_steps"]:
+            kept.pop()
+        kept.append(line)
+    return kept
+
+
 def smoothed_scene_success(lines, episodes=SMOOTHING, key="agent_steps"):
     """MetaDrive's training success smoothed as CoPO smoothed it, over the last `episodes`
     scene episodes (at least; whole progress lines apart), from the lines' `scene_totals`:
-    (line[key], rate) per line with that many episodes of its process behind it. Empty for
-    runs written before `scene_totals` existed."""
-    out, start = [], 0
-    for i, line in enumerate(lines):
+    (line[key], rate) per line with that many episodes of the run behind it, as `learner
+    report` computes it. Empty for runs written before `scene_totals` existed."""
+    lines = without_rolled_back(lines)
+    out, behind, offset, previous = [], [(0, 0.0)], (0, 0.0), None
+    for line in lines:
         totals = line.get("scene_totals")
         if not totals:
             return []
-        # A resumed process counts from 0 again: its lines window among themselves.
-        if i > start and totals["scene_episodes"] < lines[i - 1]["scene_totals"]["scene_episodes"]:
-            start = i
-        here = totals["scene_episodes"]
-        behind = [{"scene_episodes": 0, "success": 0.0}] + [p["scene_totals"] for p in lines[start:i]]
-        base = next((t for t in reversed(behind) if t["scene_episodes"] <= here - episodes), None)
+        # A resumed process counts from 0 again (its clock too): its totals continue the run's.
+        if previous is not None and (
+                totals["scene_episodes"] < previous["scene_totals"]["scene_episodes"]
+                or line.get("elapsed_s", 0) < previous.get("elapsed_s", 0)):
+            offset = behind[-1]
+        here = (offset[0] + totals["scene_episodes"], offset[1] + totals["success"])
+        base = next((b for b in reversed(behind) if b[0] <= here[0] - episodes), None)
         if base is not None:
-            out.append((line[key],
-                        (totals["success"] - base["success"]) / (here - base["scene_episodes"])))
+            out.append((line[key], (here[1] - base[1]) / (here[0] - base[0])))
+        behind.append(here)
+        previous = line
     return out
 
 

@@ -131,20 +131,23 @@ def test_a_rerun_replaces_the_grids_run_only_when_asked(tmp_path):
     assert cells(rows["CL|2"])[3] == f"0.75 ± {T1 * 0.15:.2f}"
 
 
-def test_smoothed_success_windows_the_scene_totals_and_restarts_after_a_resume():
+def test_smoothed_success_windows_the_run_as_one_across_a_resume():
     import importlib.util
     spec = importlib.util.spec_from_file_location("grid_tables", SCRIPT)
     grid_tables = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(grid_tables)
 
-    def line(steps, episodes, success):
-        return {"agent_steps": steps, "scene_totals": {"scene_episodes": episodes, "success": success}}
-    lines = [line(1, 40, 20.0), line(2, 100, 50.0), line(3, 150, 100.0), line(4, 210, 160.0),
-             line(5, 30, 30.0), line(6, 120, 60.0)]  # the process resumed at the fifth line
+    def line(steps, elapsed, episodes, success):
+        return {"agent_steps": steps, "elapsed_s": elapsed,
+                "scene_totals": {"scene_episodes": episodes, "success": success}}
+    # A process to 40, killed; the next resumed from its checkpoint at 30 and counts from 0.
+    lines = [line(10, 1, 40, 20.0), line(20, 2, 100, 50.0), line(30, 3, 150, 100.0),
+             line(40, 4, 210, 160.0), line(35, 1, 30, 30.0), line(45, 2, 120, 60.0)]
     smoothed = grid_tables.smoothed_scene_success(lines, episodes=100)
-    assert [s for s, _ in smoothed] == [2, 3, 4, 6]
-    # From the process start, then from the latest line at least 100 episodes back.
-    expected = [50 / 100, (100 - 20) / (150 - 40), (160 - 50) / (210 - 100), 60 / 120]
+    # The line at 40 was rolled back; the resumed totals continue the line at 30's (150, 100).
+    assert [s for s, _ in smoothed] == [20, 30, 35, 45]
+    # From the start, then from the latest line at least 100 episodes back.
+    expected = [50 / 100, (100 - 20) / (150 - 40), (130 - 20) / (180 - 40), (160 - 100) / (270 - 150)]
     assert all(abs(r - e) < 1e-12 for (_, r), e in zip(smoothed, expected)), smoothed
     # Runs written before scene_totals existed have no smoothed curve.
     assert grid_tables.smoothed_scene_success([{"agent_steps": 1, "scene_window": {}}]) == []

@@ -359,7 +359,11 @@ fn an_actor_stops_cleanly_on_sigterm_and_ends_by_sigint_on_ctrl_c() {
         let retrying = wait_until(Duration::from_secs(30), || {
             actor.log().contains("learner unreachable")
         });
-        assert!(retrying, "the actor is not retrying\n{}", actor.log_tail(20));
+        assert!(
+            retrying,
+            "the actor is not retrying\n{}",
+            actor.log_tail(20)
+        );
         actor.signal(signal);
         let status = actor.wait_exit(Duration::from_secs(30));
         // SIGTERM (`docker stop`, a learner's local mode) is a normal end; after Ctrl-C a
@@ -377,6 +381,10 @@ fn an_actor_stops_cleanly_on_sigterm_and_ends_by_sigint_on_ctrl_c() {
                 actor.log_tail(20)
             ),
         }
-        assert!(actor.log().contains("interrupted"), "{}", actor.log_tail(20));
+        assert!(
+            actor.log().contains("interrupted"),
+            "{}",
+            actor.log_tail(20)
+        );
     }
 }

@@ -88,36 +88,41 @@ pub fn curve(run: &Run, key: &str) -> Vec<(f64, f64)> {
 }
 
 /// MetaDrive's training success smoothed as CoPO smoothed it: at each line with at least
-/// `episodes` scene episodes of its process behind it, the mean per-scene-episode share of
+/// `episodes` scene episodes of the run behind it, the mean per-scene-episode share of
 /// arrivals over the newest of them (at least `episodes`, whole progress lines apart), from
 /// the lines' `scene_totals`. Empty for runs written before the totals existed. A resumed
-/// process counts its totals from 0 again, so its lines window among themselves.
+/// process counts its totals from 0 again (its clock too), so they continue the totals of the
+/// line before it: the run is smoothed as one.
 pub fn smoothed_scene_success(run: &Run, episodes: u64) -> Vec<(f64, f64)> {
     let episodes = episodes.max(1);
     let mut curve = Vec::new();
-    // (scene episodes, success sum) of the process's earlier lines, from its start at 0.
+    // (scene episodes, success sum) of the run's earlier lines, from its start at 0.
     let mut behind: Vec<(u64, f64)> = vec![(0, 0.0)];
     let mut base = 0;
+    // The run's totals when this process started.
+    let mut offset = (0, 0.0);
+    let mut previous: Option<&ProgressLine> = None;
     for line in &run.lines {
         let totals = &line.scene_totals;
-        if behind
-            .last()
-            .is_some_and(|&(n, _)| totals.scene_episodes < n)
-        {
-            behind = vec![(0, 0.0)];
-            base = 0;
+        if previous.is_some_and(|p| {
+            totals.scene_episodes < p.scene_totals.scene_episodes || line.elapsed_s < p.elapsed_s
+        }) {
+            offset = behind[behind.len() - 1];
         }
-        if let Some(limit) = totals.scene_episodes.checked_sub(episodes) {
+        let (scene_episodes, success) =
+            (offset.0 + totals.scene_episodes, offset.1 + totals.success);
+        if let Some(limit) = scene_episodes.checked_sub(episodes) {
             while behind.get(base + 1).is_some_and(|&(n, _)| n <= limit) {
                 base += 1;
             }
-            let (n, success) = behind[base];
+            let (n, earlier) = behind[base];
             curve.push((
                 line.agent_steps as f64,
-                (totals.success - success) / (totals.scene_episodes - n) as f64,
+                (success - earlier) / (scene_episodes - n) as f64,
             ));
         }
-        behind.push((totals.scene_episodes, totals.success));
+        behind.push((scene_episodes, success));
+        previous = Some(line);
     }
     curve
 }
@@ -318,11 +323,17 @@ mod tests {
         assert!(super::band(&[&b, &disjoint], "success_rate", 5).is_empty());
     }
 
-    /// A line whose process has seen `scene_episodes` scene episodes with `success` arrivals
-    /// (sum of per-episode shares) in all.
-    fn totals_line(agent_steps: u64, scene_episodes: u64, success: f64) -> ProgressLine {
+    /// A line written `elapsed_s` into its process, which has seen `scene_episodes` scene
+    /// episodes with `success` arrivals (sum of per-episode shares) in all.
+    fn totals_line(
+        agent_steps: u64,
+        elapsed_s: f64,
+        scene_episodes: u64,
+        success: f64,
+    ) -> ProgressLine {
         ProgressLine {
             agent_steps,
+            elapsed_s,
             scene_totals: crate::stats::SceneTotals {
                 scene_episodes,
                 success,
@@ -337,20 +348,31 @@ mod tests {
         let r = run(
             1,
             vec![
-                totals_line(10, 4, 1.0),
-                totals_line(20, 10, 4.0),
-                totals_line(30, 12, 6.0),
-                totals_line(40, 16, 10.0),
+                totals_line(10, 1.0, 4, 1.0),
+                totals_line(20, 2.0, 10, 4.0),
+                totals_line(30, 3.0, 12, 6.0),
+                totals_line(40, 4.0, 16, 10.0),
                 // A resumed process: its totals start again from 0.
-                totals_line(50, 3, 3.0),
-                totals_line(60, 11, 3.0),
+                totals_line(50, 1.0, 3, 3.0),
+                totals_line(60, 2.0, 11, 3.0),
+                // Another, told apart by its clock alone: it starts with more than its
+                // predecessor had.
+                totals_line(70, 1.0, 14, 7.0),
             ],
         );
         let curve = smoothed_scene_success(&r, 10);
-        // x = 20: all 10 from the start; x = 30: since the line at 0 (12 episodes, the
-        // line at 4 would leave 8); x = 40: since 4 (12 episodes, 9 successes); the resumed
-        // process is windowed alone, reaching 10 at x = 60: 3 / 11.
-        let expected = [(20.0, 0.4), (30.0, 0.5), (40.0, 0.75), (60.0, 3.0 / 11.0)];
+        // The run's totals: 4, 10, 12, 16, then 16 + 3 = 19, 16 + 11 = 27, 27 + 14 = 41.
+        // x = 20: all 10 from the start; x = 30: since the line at 0 (12 episodes, the line
+        // at 4 would leave 8); x = 40: since 4 (12 episodes, 9 successes); x = 50: since 4
+        // (15, 12); x = 60: since 16 (11, 3); x = 70: since 27 (14, 7).
+        let expected = [
+            (20.0, 0.4),
+            (30.0, 0.5),
+            (40.0, 0.75),
+            (50.0, 0.8),
+            (60.0, 3.0 / 11.0),
+            (70.0, 0.5),
+        ];
         assert_eq!(curve.len(), expected.len(), "{curve:?}");
         for (got, want) in curve.iter().zip(expected) {
             assert_eq!(got.0, want.0);

@@ -19,7 +19,7 @@ pub struct Run {
     pub scene: String,
     /// `run.seed`.
     pub seed: u64,
-    /// Progress lines in file order.
+    /// Progress lines of the training as it stands, in file order ([`without_rolled_back`]).
     pub lines: Vec<ProgressLine>,
     /// Lines that did not parse (a line cut short by a crash, say); skipped.
     pub bad_lines: usize,
@@ -55,6 +55,23 @@ impl Run {
             evals: Vec::new(),
         }
     }
+}
+
+/// A resumed learner trains on from its newest checkpoint, so the lines its predecessor wrote
+/// past that point describe training the resume rolled back: each line drops the lines before
+/// it that are further on than itself, leaving one history whose agent-steps only grow.
+fn without_rolled_back(lines: Vec<ProgressLine>) -> Vec<ProgressLine> {
+    let mut kept: Vec<ProgressLine> = Vec::with_capacity(lines.len());
+    for line in lines {
+        while kept
+            .last()
+            .is_some_and(|l| l.agent_steps > line.agent_steps)
+        {
+            kept.pop();
+        }
+        kept.push(line);
+    }
+    kept
 }
 
 /// The run directories among `paths`: each path that holds a `progress.jsonl`, else its
@@ -97,6 +114,7 @@ pub fn load(dir: &Path) -> anyhow::Result<Run> {
             Err(_) => bad_lines += 1,
         }
     }
+    let lines = without_rolled_back(lines);
     anyhow::ensure!(
         !lines.is_empty(),
         "{} holds no readable progress line",
@@ -194,4 +212,36 @@ fn read_evals(dir: &Path, scene: &str) -> anyhow::Result<Vec<EvalReport>> {
         }
     }
     Ok(evals)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn line(agent_steps: u64, elapsed_s: f64) -> ProgressLine {
+        ProgressLine {
+            agent_steps,
+            elapsed_s,
+            ..ProgressLine::default()
+        }
+    }
+
+    #[test]
+    fn a_resume_drops_the_lines_past_the_checkpoint_it_started_from() {
+        // A first process to 40, killed; the second resumed from a checkpoint at 25.
+        let lines = [
+            (10, 1.0),
+            (20, 2.0),
+            (30, 3.0),
+            (40, 4.0),
+            (25, 0.5),
+            (35, 1.5),
+        ];
+        let kept: Vec<(u64, f64)> =
+            without_rolled_back(lines.iter().map(|&(x, t)| line(x, t)).collect())
+                .iter()
+                .map(|l| (l.agent_steps, l.elapsed_s))
+                .collect();
+        assert_eq!(kept, [(10, 1.0), (20, 2.0), (25, 0.5), (35, 1.5)]);
+    }
 }
