@@ -91,8 +91,8 @@ pub fn curve(run: &Run, key: &str) -> Vec<(f64, f64)> {
 /// `episodes` scene episodes of the run behind it, the mean per-scene-episode share of
 /// arrivals over the newest of them (at least `episodes`, whole progress lines apart), from
 /// the lines' `scene_totals`. Empty for runs written before the totals existed. A resumed
-/// process counts its totals from 0 again (its clock too), so they continue the totals of the
-/// line before it: the run is smoothed as one.
+/// process counts its totals from 0 again, so they continue the totals of the line before it:
+/// the run is smoothed as one.
 pub fn smoothed_scene_success(run: &Run, episodes: u64) -> Vec<(f64, f64)> {
     let episodes = episodes.max(1);
     let mut curve = Vec::new();
@@ -101,12 +101,9 @@ pub fn smoothed_scene_success(run: &Run, episodes: u64) -> Vec<(f64, f64)> {
     let mut base = 0;
     // The run's totals when this process started.
     let mut offset = (0, 0.0);
-    let mut previous: Option<&ProgressLine> = None;
-    for line in &run.lines {
+    for (i, line) in run.lines.iter().enumerate() {
         let totals = &line.scene_totals;
-        if previous.is_some_and(|p| {
-            totals.scene_episodes < p.scene_totals.scene_episodes || line.elapsed_s < p.elapsed_s
-        }) {
+        if i > 0 && run.process_starts.contains(&i) {
             offset = behind[behind.len() - 1];
         }
         let (scene_episodes, success) =
@@ -122,7 +119,6 @@ pub fn smoothed_scene_success(run: &Run, episodes: u64) -> Vec<(f64, f64)> {
             ));
         }
         behind.push((scene_episodes, success));
-        previous = Some(line);
     }
     curve
 }
@@ -226,10 +222,10 @@ pub struct Reach {
 pub fn first_reach(run: &Run, threshold: f64, min_episodes: usize) -> Option<Reach> {
     run.lines
         .iter()
-        .find(|l| l.window.episodes >= min_episodes && l.window.success_rate >= threshold)
-        .map(|l| Reach {
-            agent_steps: l.agent_steps,
-            elapsed_s: l.elapsed_s,
+        .position(|l| l.window.episodes >= min_episodes && l.window.success_rate >= threshold)
+        .map(|i| Reach {
+            agent_steps: run.lines[i].agent_steps,
+            elapsed_s: run.elapsed_at(i),
         })
 }
 
@@ -238,17 +234,21 @@ pub fn first_reach(run: &Run, threshold: f64, min_episodes: usize) -> Option<Rea
 pub fn best_success(run: &Run, min_episodes: usize) -> Option<(f64, Reach)> {
     run.lines
         .iter()
-        .filter(|l| l.window.episodes >= min_episodes)
-        .fold(None, |best: Option<&ProgressLine>, l| match best {
-            Some(b) if b.window.success_rate >= l.window.success_rate => Some(b),
-            _ => Some(l),
-        })
-        .map(|l| {
+        .enumerate()
+        .filter(|(_, l)| l.window.episodes >= min_episodes)
+        .fold(
+            None,
+            |best: Option<(usize, &ProgressLine)>, (i, l)| match best {
+                Some((_, b)) if b.window.success_rate >= l.window.success_rate => best,
+                _ => Some((i, l)),
+            },
+        )
+        .map(|(i, l)| {
             (
                 l.window.success_rate,
                 Reach {
                     agent_steps: l.agent_steps,
-                    elapsed_s: l.elapsed_s,
+                    elapsed_s: run.elapsed_at(i),
                 },
             )
         })
@@ -360,6 +360,7 @@ mod tests {
                 totals_line(70, 1.0, 14, 7.0),
             ],
         );
+        assert_eq!(r.process_starts, [0, 4, 6]);
         let curve = smoothed_scene_success(&r, 10);
         // The run's totals: 4, 10, 12, 16, then 16 + 3 = 19, 16 + 11 = 27, 27 + 14 = 41.
         // x = 20: all 10 from the start; x = 30: since the line at 0 (12 episodes, the line
@@ -419,6 +420,18 @@ mod tests {
         assert_eq!(first_reach(&r, 0.9, 50), None);
         let (best, at) = best_success(&r, 50).unwrap();
         assert_eq!((best, at.agent_steps), (0.85, 300));
+        // Resumed after 2 s: the second process's clock counts on from the first's.
+        let resumed = run(
+            2,
+            vec![
+                line(100, 50, 0.6, 1.0),
+                line(200, 50, 0.7, 2.0),
+                line(300, 60, 0.85, 0.5),
+            ],
+        );
+        let reach = first_reach(&resumed, 0.8, 50).map(|r| r.elapsed_s);
+        assert_eq!(reach, Some(2.5));
+        assert_eq!(best_success(&resumed, 50).map(|b| b.1.elapsed_s), Some(2.5));
     }
 
     #[test]

@@ -21,6 +21,9 @@ pub struct Run {
     pub seed: u64,
     /// Progress lines of the training as it stands, in file order ([`without_rolled_back`]).
     pub lines: Vec<ProgressLine>,
+    /// The index in `lines` where each learner process of the run begins: 0, and one more
+    /// per resume ([`process_starts`]).
+    pub process_starts: Vec<usize>,
     /// Lines that did not parse (a line cut short by a crash, say); skipped.
     pub bad_lines: usize,
     /// Evaluations of this run on its own scenario.
@@ -37,9 +40,24 @@ impl Run {
         self.last().map_or(0, |l| l.agent_steps)
     }
 
-    /// Wall-clock seconds of training (of the last learner process, on a resumed run).
+    /// Wall-clock seconds of training by the end of the run.
     pub fn wall_s(&self) -> f64 {
-        self.last().map_or(0.0, |l| l.elapsed_s)
+        self.lines
+            .len()
+            .checked_sub(1)
+            .map_or(0.0, |i| self.elapsed_at(i))
+    }
+
+    /// Wall-clock seconds of training behind line `i`: its process's clock, which starts
+    /// again at 0 on a resume, plus each earlier process's up to its last kept line.
+    pub fn elapsed_at(&self, i: usize) -> f64 {
+        let earlier: f64 = self
+            .process_starts
+            .iter()
+            .filter(|&&start| start > 0 && start <= i)
+            .map(|&start| self.lines[start - 1].elapsed_s)
+            .sum();
+        earlier + self.lines[i].elapsed_s
     }
 
     /// A run of `method` on the intersection made of `lines`, without evaluations.
@@ -50,6 +68,7 @@ impl Run {
             method: method.into(),
             scene: "intersection".into(),
             seed,
+            process_starts: process_starts(&lines),
             lines,
             bad_lines: 0,
             evals: Vec::new(),
@@ -72,6 +91,18 @@ fn without_rolled_back(lines: Vec<ProgressLine>) -> Vec<ProgressLine> {
         kept.push(line);
     }
     kept
+}
+
+/// A learner process's clock and its scene totals only grow; a resumed process starts both
+/// again from 0, so a line where either falls begins a new process.
+fn process_starts(lines: &[ProgressLine]) -> Vec<usize> {
+    let mut starts = vec![0];
+    starts.extend((1..lines.len()).filter(|&i| {
+        let (before, line) = (&lines[i - 1], &lines[i]);
+        line.elapsed_s < before.elapsed_s
+            || line.scene_totals.scene_episodes < before.scene_totals.scene_episodes
+    }));
+    starts
 }
 
 /// The run directories among `paths`: each path that holds a `progress.jsonl`, else its
@@ -140,6 +171,7 @@ pub fn load(dir: &Path) -> anyhow::Result<Run> {
         method,
         scene,
         seed,
+        process_starts: process_starts(&lines),
         lines,
         bad_lines,
         evals,
@@ -243,5 +275,22 @@ mod tests {
                 .map(|l| (l.agent_steps, l.elapsed_s))
                 .collect();
         assert_eq!(kept, [(10, 1.0), (20, 2.0), (25, 0.5), (35, 1.5)]);
+    }
+
+    #[test]
+    fn a_resumed_runs_clock_adds_its_processes_up() {
+        // Two processes: 2 s to the checkpoint kept, then 1.5 s more.
+        let r = Run::fixture(
+            "ippo",
+            1,
+            [(10, 1.0), (20, 2.0), (25, 0.5), (35, 1.5)]
+                .iter()
+                .map(|&(x, t)| line(x, t))
+                .collect(),
+        );
+        assert_eq!(r.process_starts, [0, 2]);
+        let clock: Vec<f64> = (0..r.lines.len()).map(|i| r.elapsed_at(i)).collect();
+        assert_eq!(clock, [1.0, 2.0, 2.5, 3.5]);
+        assert_eq!(r.wall_s(), 3.5);
     }
 }
