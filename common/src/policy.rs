@@ -11,6 +11,7 @@ use rand_distr::{Distribution, StandardNormal};
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
+use crate::mlp::{Mlp, MlpPass};
 use crate::q_policy::QPolicy;
 use crate::spec::OBS_LAYOUT_VERSION;
 use crate::weights::{self, Decoded, WeightsError};
@@ -18,49 +19,6 @@ use crate::weights::{self, Decoded, WeightsError};
 /// Normalised observations are clipped to ± this many standard deviations.
 const OBS_CLIP: f64 = 10.0;
 const OBS_VAR_EPS: f64 = 1e-8;
-
-/// An MLP with tanh hidden activations and orthogonal initialisation (gain √2 on hidden
-/// layers, `out_gain` on the output layer, zero biases), as in well-tuned PPO implementations.
-#[derive(Debug)]
-pub struct Mlp {
-    layers: Vec<nn::Linear>,
-}
-
-impl Mlp {
-    pub fn new(path: nn::Path, in_dim: i64, hidden: &[i64], out_dim: i64, out_gain: f64) -> Self {
-        let mut layers = Vec::with_capacity(hidden.len() + 1);
-        let mut width = in_dim;
-        let sizes = hidden.iter().copied().chain(std::iter::once(out_dim));
-        for (i, size) in sizes.enumerate() {
-            let gain = if i == hidden.len() {
-                out_gain
-            } else {
-                std::f64::consts::SQRT_2
-            };
-            let config = nn::LinearConfig {
-                ws_init: nn::Init::Orthogonal { gain },
-                bs_init: Some(nn::Init::Const(0.0)),
-                bias: true,
-            };
-            layers.push(nn::linear(&path / format!("l{i}"), width, size, config));
-            width = size;
-        }
-        Mlp { layers }
-    }
-}
-
-impl Module for Mlp {
-    fn forward(&self, x: &Tensor) -> Tensor {
-        let last = self.layers.len() - 1;
-        self.layers
-            .iter()
-            .enumerate()
-            .fold(x.shallow_clone(), |h, (i, layer)| {
-                let h = layer.forward(&h);
-                if i == last { h } else { h.tanh() }
-            })
-    }
-}
 
 /// Running mean and variance of observations (Chan et al.'s parallel update), in f64.
 #[derive(Debug, Clone, PartialEq)]
@@ -366,12 +324,19 @@ impl GaussianPolicy {
 
     /// Mean action and log-std, one row per normalised observation.
     pub fn distribution(&self, obs_normalized: &Tensor) -> (Tensor, Tensor) {
-        let out = self.net.forward(obs_normalized);
+        self.head(&self.net.forward(obs_normalized))
+    }
+
+    /// The network's pass for hand-written gradients: the update builds its loss on
+    /// `head(&pass.output)`, then calls `pass.backward()` ([`Mlp::forward_pass`]).
+    pub fn forward_pass(&self, obs_normalized: &Tensor) -> MlpPass<'_> {
+        self.net.forward_pass(obs_normalized)
+    }
+
+    /// Mean action and log-std from the network's output rows.
+    pub fn head(&self, out: &Tensor) -> (Tensor, Tensor) {
         match self.action_std {
-            ActionStd::Global => {
-                let log_std = self.log_std.expand_as(&out);
-                (out, log_std)
-            }
+            ActionStd::Global => (out.shallow_clone(), self.log_std.expand_as(out)),
             ActionStd::State => {
                 let (mean, offset) = (
                     out.narrow(-1, 0, self.action_dim),
@@ -399,7 +364,7 @@ impl GaussianPolicy {
             let noise = Tensor::from_slice(noise)
                 .reshape([rows, self.action_dim])
                 .to_device(device);
-            let (mean, log_std) = self.distribution(&self.normalize(&obs));
+            let (mean, log_std) = self.head(&self.net.infer(&self.normalize(&obs)));
             let actions = &mean + log_std.exp() * noise;
             let log_probs = gaussian_log_prob(&mean, &log_std, &actions);
             let actions = Vec::<f32>::try_from(actions.to_device(Device::Cpu).flatten(0, -1))?;

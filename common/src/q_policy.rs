@@ -15,8 +15,9 @@ use rand::{Rng, RngCore};
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
+use crate::mlp::Mlp;
 use crate::policy::{
-    KIND_KEY, Mlp, ObsNormTensors, ObsNormalizer, Policy, PolicyMeta, ensure_blob_holds,
+    KIND_KEY, ObsNormTensors, ObsNormalizer, Policy, PolicyMeta, ensure_blob_holds,
     hidden_from_meta, hidden_to_meta, minimum_values, obs_dim_from_meta,
 };
 use crate::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};

@@ -77,6 +77,21 @@ pub struct RunSection {
     pub stats_window_scene_episodes: usize,
 }
 
+impl RunSection {
+    /// The share of the run's budget used after `agent_steps` agent-steps and `seconds` of
+    /// training: of `max_agent_steps` where set, else of `max_seconds` (a run bounded by the
+    /// clock, such as `make run`'s), else None. What `ppo.lr_schedule = "linear"` follows.
+    pub fn budget_spent(&self, agent_steps: u64, seconds: f64) -> Option<f64> {
+        if self.max_agent_steps > 0 {
+            Some(agent_steps as f64 / self.max_agent_steps as f64)
+        } else if self.max_seconds > 0.0 {
+            Some(seconds / self.max_seconds)
+        } else {
+            None
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScenarioConfig {
@@ -333,19 +348,18 @@ impl ActionStd {
 pub enum LrSchedule {
     /// `ppo.learning_rate` throughout.
     Constant,
-    /// From `ppo.learning_rate` down to 0 in proportion to the agent-steps consumed, reaching 0
-    /// at `run.max_agent_steps`; constant in a run without that budget.
+    /// From `ppo.learning_rate` down to 0 as the run's budget is spent
+    /// ([`RunSection::budget_spent`]); constant in a run without a budget.
     Linear,
 }
 
 impl LrSchedule {
-    /// The step size once `agent_steps` of a `budget` (run.max_agent_steps) are consumed.
-    pub fn learning_rate(self, base: f64, agent_steps: u64, budget: u64) -> f64 {
-        match self {
-            LrSchedule::Constant => base,
-            // Without a budget (a run bounded by time, or endless) there is nothing to anneal over.
-            LrSchedule::Linear if budget == 0 => base,
-            LrSchedule::Linear => base * (1.0 - agent_steps as f64 / budget as f64).max(0.0),
+    /// The step size once the share `spent` of the run's budget is used (None: no budget).
+    pub fn learning_rate(self, base: f64, spent: Option<f64>) -> f64 {
+        match (self, spent) {
+            (LrSchedule::Linear, Some(spent)) => base * (1.0 - spent).max(0.0),
+            // Without a budget (an endless run) there is nothing to anneal over.
+            _ => base,
         }
     }
 }
@@ -1432,14 +1446,37 @@ mod tests {
     #[test]
     fn the_linear_learning_rate_falls_to_zero_at_the_budget_and_stays_constant_without_one() {
         let linear = LrSchedule::Linear;
-        assert_eq!(linear.learning_rate(4e-4, 0, 1000), 4e-4);
-        assert!((linear.learning_rate(4e-4, 250, 1000) - 3e-4).abs() < 1e-12);
-        assert_eq!(linear.learning_rate(4e-4, 1500, 1000), 0.0);
-        assert_eq!(linear.learning_rate(4e-4, 1500, 0), 4e-4);
-        assert_eq!(LrSchedule::Constant.learning_rate(4e-4, 900, 1000), 4e-4);
+        let mut run = RunConfig::default().run;
+        run.max_agent_steps = 1000;
+        let rate = |schedule: LrSchedule, run: &RunSection, steps| {
+            schedule.learning_rate(4e-4, run.budget_spent(steps, 30.0))
+        };
+        assert_eq!(rate(linear, &run, 0), 4e-4);
+        assert!((rate(linear, &run, 250) - 3e-4).abs() < 1e-12);
+        assert_eq!(rate(linear, &run, 1500), 0.0);
+        assert_eq!(rate(LrSchedule::Constant, &run, 900), 4e-4);
+        run.max_agent_steps = 0;
+        run.max_seconds = 0.0;
+        assert_eq!(rate(linear, &run, 1500), 4e-4);
         assert_eq!(RunConfig::default().ppo.lr_schedule, LrSchedule::Linear);
         let constant = RunConfig::load(None, &["ppo.lr_schedule=\"constant\"".into()]);
         assert_eq!(constant.unwrap().ppo.lr_schedule, LrSchedule::Constant);
+    }
+
+    #[test]
+    fn a_run_bounded_by_the_clock_spends_its_budget_in_seconds() {
+        let mut run = RunConfig::default().run;
+        run.max_seconds = 300.0;
+        assert_eq!(run.budget_spent(123_456, 75.0), Some(0.25));
+        // An agent-step budget, where there is one, is what the schedule follows.
+        run.max_agent_steps = 1_000_000;
+        assert_eq!(run.budget_spent(500_000, 75.0), Some(0.5));
+        let rate = LrSchedule::Linear.learning_rate(4e-4, RunSection {
+            max_agent_steps: 0,
+            ..run
+        }
+        .budget_spent(0, 150.0));
+        assert!((rate - 2e-4).abs() < 1e-12, "{rate}");
     }
 
     #[test]

@@ -1,14 +1,24 @@
 //! Adam with global gradient-norm clipping, written out so its state is ours to checkpoint
 //! and resume exactly (moments and step count).
+//!
+//! The parameters it trains live in one flat buffer, and so do their gradients: each
+//! parameter (and its gradient) is a view of its stretch. Zeroing, the gradient norm, the
+//! clip and the step are then one pass over a few buffers instead of a dozen operations per
+//! parameter tensor, and on the CPU the step is one fused loop in Rust.
 
-use tch::{Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
+use junction_common::mlp::elementwise;
 use junction_common::weights::{Decoded, WeightsError};
 
 pub struct Adam {
     params: Vec<Tensor>,
-    first_moment: Vec<Tensor>,
-    second_moment: Vec<Tensor>,
+    /// Every parameter's values, one after another; `params` are views of it.
+    values: Tensor,
+    /// Their gradients likewise; each parameter's gradient is a view of its stretch.
+    grads: Tensor,
+    first_moment: Tensor,
+    second_moment: Tensor,
     steps: i64,
     learning_rate: f64,
     eps: f64,
@@ -17,12 +27,41 @@ pub struct Adam {
 }
 
 impl Adam {
+    /// Adam over `params` (f32 tensors on one device, each trained by no other optimiser),
+    /// which from now on share one buffer: their values stay what they were.
     pub fn new(params: Vec<Tensor>, learning_rate: f64, eps: f64) -> Self {
-        let zeros = |ps: &[Tensor]| ps.iter().map(Tensor::zeros_like).collect::<Vec<_>>();
+        let device = params.first().map_or(Device::Cpu, Tensor::device);
+        let total: i64 = params.iter().map(|p| p.numel() as i64).sum();
+        let zeros = || Tensor::zeros([total], (Kind::Float, device));
+        let (values, grads) = (zeros(), zeros());
+        // Every parameter needs a gradient to be re-pointed: autograd makes them (zeros).
+        if !params.is_empty() {
+            tch::with_grad(|| {
+                params
+                    .iter()
+                    .map(|p| p.sum(Kind::Float) * 0.0)
+                    .fold(Tensor::zeros([], (Kind::Float, device)), |a, b| a + b)
+                    .backward()
+            });
+        }
+        tch::no_grad(|| {
+            let mut offset = 0;
+            for p in &params {
+                let (len, shape) = (p.numel() as i64, p.size());
+                let stretch = |buffer: &Tensor| buffer.narrow(0, offset, len).view(shape.as_slice());
+                let value = stretch(&values);
+                let _ = value.shallow_clone().copy_(p);
+                p.shallow_clone().set_data(&value);
+                p.grad().set_data(&stretch(&grads));
+                offset += len;
+            }
+        });
         Adam {
-            first_moment: zeros(&params),
-            second_moment: zeros(&params),
             params,
+            values,
+            grads,
+            first_moment: zeros(),
+            second_moment: zeros(),
             steps: 0,
             learning_rate,
             eps,
@@ -41,40 +80,21 @@ impl Adam {
     }
 
     pub fn zero_grad(&mut self) {
-        for p in &mut self.params {
-            let mut grad = p.grad();
-            if grad.defined() {
-                let _ = grad.zero_();
-            }
-        }
+        let _ = self.grads.zero_();
     }
 
     /// Scales gradients so their global L2 norm is at most `max_norm` (0 = no clipping);
     /// returns the norm before clipping.
     pub fn clip_grad_norm(&mut self, max_norm: f64) -> f64 {
-        let grads: Vec<Tensor> = self
-            .params
-            .iter()
-            .map(Tensor::grad)
-            .filter(Tensor::defined)
-            .collect();
-        if grads.is_empty() {
+        if self.params.is_empty() {
             return 0.0;
         }
-        let norm = tch::no_grad(|| {
-            grads
-                .iter()
-                .map(|g| g.square().sum(Kind::Float))
-                .fold(Tensor::from(0.0f32), |a, b| a + b)
-                .sqrt()
-        });
+        let norm = tch::no_grad(|| self.grads.norm());
         let norm = f64::try_from(norm).unwrap_or(f64::NAN);
         if max_norm > 0.0 && norm > max_norm {
             let scale = max_norm / (norm + 1e-6);
             tch::no_grad(|| {
-                for mut g in grads {
-                    let _ = g.g_mul_scalar_(scale);
-                }
+                let _ = self.grads.g_mul_scalar_(scale);
             });
         }
         norm
@@ -82,28 +102,34 @@ impl Adam {
 
     pub fn step(&mut self) {
         self.steps += 1;
-        let correction1 = 1.0 - self.beta1.powi(self.steps as i32);
-        let correction2 = 1.0 - self.beta2.powi(self.steps as i32);
-        let step_size = self.learning_rate / correction1;
+        let step = AdamStep {
+            beta1: self.beta1 as f32,
+            beta2: self.beta2 as f32,
+            one_minus_beta1: (1.0 - self.beta1) as f32,
+            one_minus_beta2: (1.0 - self.beta2) as f32,
+            correction2: (1.0 - self.beta2.powi(self.steps as i32)) as f32,
+            step_size: (self.learning_rate / (1.0 - self.beta1.powi(self.steps as i32))) as f32,
+            eps: self.eps as f32,
+        };
         tch::no_grad(|| {
-            for ((p, m), v) in self
-                .params
-                .iter_mut()
-                .zip(&mut self.first_moment)
-                .zip(&mut self.second_moment)
-            {
-                let g = p.grad();
-                if !g.defined() {
-                    continue;
+            if self.values.device() == Device::Cpu {
+                // SAFETY: four distinct contiguous f32 CPU buffers of one length, made in `new`
+                // (or restored into by copy) and touched by nothing else during the step.
+                unsafe {
+                    step.apply(
+                        slice(&self.values),
+                        slice(&self.grads),
+                        slice(&self.first_moment),
+                        slice(&self.second_moment),
+                    )
                 }
-                let _ = m
-                    .g_mul_scalar_(self.beta1)
-                    .g_add_(&(&g * (1.0 - self.beta1)));
-                let _ = v
-                    .g_mul_scalar_(self.beta2)
-                    .addcmul_(&(&g * (1.0 - self.beta2)), &g);
-                let denom = (&*v / correction2).sqrt() + self.eps;
-                let _ = p.g_add_(&(&*m / denom * -step_size));
+            } else {
+                step.apply_tensors(
+                    &mut self.values,
+                    &self.grads,
+                    &mut self.first_moment,
+                    &mut self.second_moment,
+                );
             }
         });
     }
@@ -115,13 +141,13 @@ impl Adam {
             Tensor::from_slice(&[self.steps as f32]),
         )];
         for (i, (m, v)) in self
-            .first_moment
-            .iter()
-            .zip(&self.second_moment)
+            .per_parameter(&self.first_moment)
+            .into_iter()
+            .zip(self.per_parameter(&self.second_moment))
             .enumerate()
         {
-            out.push((format!("{prefix}.m.{i:03}"), m.shallow_clone()));
-            out.push((format!("{prefix}.v.{i:03}"), v.shallow_clone()));
+            out.push((format!("{prefix}.m.{i:03}"), m));
+            out.push((format!("{prefix}.v.{i:03}"), v));
         }
         out
     }
@@ -135,14 +161,101 @@ impl Adam {
             moments.push((m, v));
         }
         self.steps = f64::try_from(steps.sum(Kind::Float))? as i64;
-        let device = self
-            .params
-            .first()
-            .map(Tensor::device)
-            .unwrap_or(tch::Device::Cpu);
-        self.first_moment = moments.iter().map(|(m, _)| m.to_device(device)).collect();
-        self.second_moment = moments.iter().map(|(_, v)| v.to_device(device)).collect();
+        let (first, second) = (
+            self.per_parameter(&self.first_moment),
+            self.per_parameter(&self.second_moment),
+        );
+        tch::no_grad(|| {
+            for ((m, v), (mut m_to, mut v_to)) in moments.iter().zip(first.into_iter().zip(second)) {
+                m_to.copy_(m);
+                v_to.copy_(v);
+            }
+        });
         Ok(())
+    }
+
+    /// Views of `buffer`'s stretches, shaped like the parameters.
+    fn per_parameter(&self, buffer: &Tensor) -> Vec<Tensor> {
+        let mut offset = 0;
+        self.params
+            .iter()
+            .map(|p| {
+                let len = p.numel() as i64;
+                let view = buffer.narrow(0, offset, len).view(p.size().as_slice());
+                offset += len;
+                view
+            })
+            .collect()
+    }
+}
+
+/// The values of a flat f32 CPU buffer made by [`Adam::new`].
+///
+/// # Safety
+/// `t` must be a contiguous f32 CPU tensor that nothing else reads or writes while the slice
+/// lives.
+unsafe fn slice<'a>(t: &Tensor) -> &'a mut [f32] {
+    let len = t.numel();
+    if len == 0 {
+        return &mut [];
+    }
+    // SAFETY: the caller's promise.
+    unsafe { std::slice::from_raw_parts_mut(t.data_ptr() as *mut f32, len) }
+}
+
+/// One Adam step's constants, in f32 as the tensors hold them.
+struct AdamStep {
+    beta1: f32,
+    beta2: f32,
+    /// 1 − β taken in f64, then rounded (as a tensor op with an f64 scalar has it).
+    one_minus_beta1: f32,
+    one_minus_beta2: f32,
+    correction2: f32,
+    /// The learning rate over the first moment's bias correction.
+    step_size: f32,
+    eps: f32,
+}
+
+impl AdamStep {
+    /// m ← β₁m + (1 − β₁)g;  v ← β₂v + (1 − β₂)g²;  θ ← θ − step · m / (√(v / c₂) + ε),
+    /// in one pass (eight values at a time where the CPU has AVX2; the same arithmetic).
+    fn apply(&self, values: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        if elementwise::avx2_fma() {
+            // SAFETY: the CPU has AVX2 and FMA.
+            return unsafe { self.apply_avx2(values, grads, m, v) };
+        }
+        self.apply_portable(values, grads, m, v);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn apply_avx2(&self, values: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+        self.apply_portable(values, grads, m, v);
+    }
+
+    #[inline(always)]
+    fn apply_portable(&self, values: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+        let (b1, b2) = (self.beta1, self.beta2);
+        let (one_minus_b1, one_minus_b2) = (self.one_minus_beta1, self.one_minus_beta2);
+        for (((theta, g), m), v) in values.iter_mut().zip(grads).zip(m).zip(v) {
+            *m = *m * b1 + g * one_minus_b1;
+            *v = *v * b2 + g * one_minus_b2 * g;
+            let denom = (*v / self.correction2).sqrt() + self.eps;
+            *theta += *m / denom * -self.step_size;
+        }
+    }
+
+    /// The same with tensor operations, for other devices.
+    fn apply_tensors(&self, values: &mut Tensor, grads: &Tensor, m: &mut Tensor, v: &mut Tensor) {
+        let _ = m
+            .g_mul_scalar_(f64::from(self.beta1))
+            .g_add_(&(grads * f64::from(self.one_minus_beta1)));
+        let _ = v
+            .g_mul_scalar_(f64::from(self.beta2))
+            .addcmul_(&(grads * f64::from(self.one_minus_beta2)), grads);
+        let denom = (&*v / f64::from(self.correction2)).sqrt() + f64::from(self.eps);
+        let _ = values.g_add_(&(&*m / denom * -f64::from(self.step_size)));
     }
 }
 

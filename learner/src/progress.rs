@@ -12,6 +12,7 @@
 //! | `agent_steps_per_s` | consumption rate since the previous line |
 //! | `episodes_total`, `collisions_total`, `sim_seconds_total` | agent episodes, collisions (agents' and human drivers') and simulated scene seconds received by this process |
 //! | `lcf` | after the first update of this process: the LCF angle φ of the newest batch, `mean_deg`, `std_deg` and `phi_deg_by_neighbours` (mean φ per neighbour-count bucket "0", "1-2", "3-5", "6+"; a bucket keeps its last value while batches have no agent in it) |
+//! | `update_seconds_total` | seconds this process spent updating; its growth over `elapsed_s` is the learner's utilisation |
 //! | `accepted_agent_steps`, `dropped_agent_steps` | agent-steps this process accepted, and those it dropped by reason (`stale`, `shutdown`, `update_failed`): the rest were trained on |
 //! | `window.*` | the sliding window of the last `run.stats_window_episodes` episodes: `episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_reward`, `max_reward`, `mean_length`, `max_length`, `mean_accel`, `mean_max_accel` (m/s²), `collisions_per_s` and the `sim_seconds` behind it |
 //! | `scene_window.*` | MetaDrive's (CoPO's) rates over the last `run.stats_window_scene_episodes` scene episodes: per scene episode the share of its agents with that outcome, averaged: `scene_episodes`, `success_rate`, `crash_rate`, `out_of_road_rate`, `timeout_rate`, `mean_agents` (agent episodes per scene episode), `mean_steps` |
@@ -45,6 +46,8 @@ pub struct ProgressLine {
     pub episodes_total: u64,
     pub collisions_total: u64,
     pub sim_seconds_total: f64,
+    /// Seconds this process spent in updates (utilisation = its growth / the clock's).
+    pub update_seconds_total: f64,
     /// This process's ingest accounting: every accepted agent-step is trained on or dropped
     /// for a reason (in the final line, after the shutdown count).
     pub accepted_agent_steps: u64,
@@ -76,6 +79,8 @@ pub struct UpdateProgress {
     /// policy the update started from.
     pub lag_mean: f64,
     pub lag_max: u64,
+    /// Wall-clock seconds the update took.
+    pub seconds: f64,
     /// PPO-Lagrangian's multiplier λ after the update (0 when `[safety]` is off).
     pub lagrange_multiplier: f64,
     /// DQN: the exploration rate broadcast after the update and the mean Q(s, a) of its

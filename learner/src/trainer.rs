@@ -104,6 +104,8 @@ struct Reporter {
     last: Instant,
     last_agent_steps: u64,
     started: Instant,
+    /// Seconds spent in updates since this process started.
+    update_seconds: f64,
 }
 
 impl Trainer {
@@ -126,6 +128,7 @@ impl Trainer {
             last: started,
             last_agent_steps: self.progress.agent_steps,
             started,
+            update_seconds: 0.0,
         };
         let start_progress = self.progress;
         let mut refusals_logged = std::collections::HashSet::new();
@@ -134,11 +137,13 @@ impl Trainer {
         let _span = tracing::info_span!("trainer", algorithm = self.algorithm.name()).entered();
         tracing::info!(version = self.progress.version, "training started");
         let ppo_based = config.learner.algo != AlgoKind::Dqn;
-        if ppo_based && config.ppo.lr_schedule == LrSchedule::Linear && budget.max_agent_steps == 0
+        if ppo_based
+            && config.ppo.lr_schedule == LrSchedule::Linear
+            && budget.budget_spent(0, 0.0).is_none()
         {
             tracing::info!(
                 learning_rate = config.ppo.learning_rate,
-                "ppo.lr_schedule = \"linear\" anneals over run.max_agent_steps, which this run does not set: the learning rate stays constant"
+                "ppo.lr_schedule = \"linear\" anneals over run.max_agent_steps or run.max_seconds, and this run sets neither: the learning rate stays constant"
             );
         }
         loop {
@@ -192,8 +197,10 @@ impl Trainer {
                 Err(_) => {}
             }
             if pending_env_steps >= config.train_batch_env_steps() {
-                if let Some((stats, update)) = self.update(&pending)? {
+                let seconds = started.elapsed().as_secs_f64();
+                if let Some((stats, update)) = self.update(&pending, seconds)? {
                     reporter.lcf.get_or_insert_default().record(&stats);
+                    reporter.update_seconds += update.seconds;
                     reporter.update = Some(update);
                 }
                 pending.clear();
@@ -266,10 +273,12 @@ impl Trainer {
             .record_fragment(&self.shared.config.scenario.name, fragment);
     }
 
-    /// One update on `batch`; its statistics, or none when it was skipped.
+    /// One update on `batch`, `run_seconds` into this process's training; its statistics, or
+    /// none when it was skipped.
     fn update(
         &mut self,
         batch: &[RolloutFragment],
+        run_seconds: f64,
     ) -> anyhow::Result<Option<(UpdateStats, UpdateProgress)>> {
         let _span = tracing::info_span!("update", version = self.progress.version + 1).entered();
         let lags: Vec<u64> = batch
@@ -277,7 +286,12 @@ impl Trainer {
             .map(|f| self.progress.version.abs_diff(f.behaviour_version))
             .collect();
         let started = Instant::now();
-        self.algorithm.set_progress(self.progress.agent_steps);
+        self.algorithm.set_progress(
+            self.shared
+                .config
+                .run
+                .budget_spent(self.progress.agent_steps, run_seconds),
+        );
         let stats = match self.algorithm.update(batch) {
             Ok(stats) => stats,
             Err(e) => {
@@ -328,6 +342,7 @@ impl Trainer {
             kl_coef: stats.kl_coef,
             lag_mean: lags.iter().sum::<u64>() as f64 / lags.len().max(1) as f64,
             lag_max: lags.iter().copied().max().unwrap_or(0),
+            seconds,
             lagrange_multiplier: stats.lagrange_multiplier,
             epsilon: stats.epsilon,
             q_mean: stats.q_mean,
@@ -429,6 +444,7 @@ impl Trainer {
             episodes_total: reporter.episodes,
             collisions_total: reporter.collisions,
             sim_seconds_total: reporter.sim_seconds,
+            update_seconds_total: reporter.update_seconds,
             accepted_agent_steps: self.shared.metrics.agent_steps_accepted.get(),
             dropped_agent_steps: self
                 .shared

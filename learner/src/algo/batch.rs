@@ -287,12 +287,17 @@ pub fn epoch_minibatches(
     rng: &mut ChaCha8Rng,
     device: Device,
 ) -> Vec<Tensor> {
-    let mut order: Vec<i64> = (0..len as i64).collect();
-    order.shuffle(rng);
-    order
+    epoch_order(len, rng)
         .chunks(size.max(1))
         .map(|chunk| Tensor::from_slice(chunk).to_device(device))
         .collect()
+}
+
+/// One epoch's order of `len` rows: a fresh permutation.
+pub fn epoch_order(len: usize, rng: &mut ChaCha8Rng) -> Vec<i64> {
+    let mut order: Vec<i64> = (0..len as i64).collect();
+    order.shuffle(rng);
+    order
 }
 
 /// Zero mean, unit variance (per minibatch, as in well-tuned PPO implementations).

@@ -85,8 +85,8 @@ impl Algorithm for Cl {
         self.ippo.policy_bytes(version)
     }
 
-    fn set_progress(&mut self, agent_steps: u64) {
-        self.ippo.set_progress(agent_steps);
+    fn set_progress(&mut self, budget_spent: Option<f64>) {
+        self.ippo.set_progress(budget_spent);
     }
 
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {

@@ -43,7 +43,7 @@ use tch::{Device, Kind, Tensor};
 use junction_common::config::{DynamicLcfConfig, GlobalReturn, LcfConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, FEATURES};
-use junction_common::policy::Mlp;
+use junction_common::mlp::Mlp;
 use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::AlgoError;

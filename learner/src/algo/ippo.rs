@@ -99,7 +99,7 @@ mod tests {
         let mut algo = ippo(&run, 3, 2);
         let mut rates = Vec::new();
         for consumed in [0, 250, 1000] {
-            algo.set_progress(consumed);
+            algo.set_progress(run.run.budget_spent(consumed, 0.0));
             let fragment = bandit_fragment(algo.policy(), 0);
             rates.push(algo.update(&[fragment]).unwrap().learning_rate);
         }

@@ -107,10 +107,13 @@ pub trait Algorithm {
     fn refusal(&self, _fragment: &RolloutFragment) -> Option<&'static str> {
         None
     }
-    /// How far the run has come (agent-steps consumed), told before every update, for
-    /// schedules that follow it (PPO's `ppo.lr_schedule`). A resumed run restores the count,
-    /// so its schedule continues where it was.
-    fn set_progress(&mut self, _agent_steps: u64) {}
+    /// How much of the run's budget is spent ([`RunSection::budget_spent`]; None: the run has
+    /// none), told before every update, for schedules that follow it (PPO's
+    /// `ppo.lr_schedule`). A resumed run restores its agent-step count, so a schedule over
+    /// agent-steps continues where it was; one over `run.max_seconds` starts again.
+    ///
+    /// [`RunSection::budget_spent`]: junction_common::config::RunSection::budget_spent
+    fn set_progress(&mut self, _budget_spent: Option<f64>) {}
     /// One update on a batch of fragments.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;
     /// Everything besides the policy needed to resume exactly (critics, optimiser state).

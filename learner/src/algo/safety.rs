@@ -9,11 +9,11 @@
 //! ```
 
 use tch::Tensor;
-use tch::nn::{self, Module};
+use tch::nn;
 
 use junction_common::config::SafetyConfig;
 use junction_common::fragment::RolloutFragment;
-use junction_common::policy::Mlp;
+use junction_common::mlp::Mlp;
 
 pub struct Lagrangian {
     critic: Mlp,
@@ -43,8 +43,13 @@ impl Lagrangian {
     }
 
     /// V_c of each critic-input row.
+    /// The cost critic, for the update's hand-written gradients.
+    pub fn cost_critic(&self) -> &Mlp {
+        &self.critic
+    }
+
     pub fn cost_value(&self, critic_inputs: &Tensor) -> Tensor {
-        self.critic.forward(critic_inputs).squeeze_dim(-1)
+        self.critic.infer(critic_inputs).squeeze_dim(-1)
     }
 
     /// The policy's advantage: the reward advantage less the priced cost advantage, rescaled

@@ -25,19 +25,20 @@ use std::borrow::Cow;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use tch::nn::{self, Module};
+use tch::nn;
 use tch::{Device, Kind, Tensor};
 
 use junction_common::config::{PpoConfig, PpoObjective, RunConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
+use junction_common::mlp::{Mlp, MlpPass};
 use junction_common::policy::{
-    GaussianPolicy, Mlp, Policy, gaussian_entropy, gaussian_kl, gaussian_log_prob,
+    GaussianPolicy, Policy, gaussian_entropy, gaussian_kl, gaussian_log_prob,
 };
 use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::batch::{
-    CriticInput, Head, alive_observations, assemble, epoch_minibatches, explained_variance,
-    standardize,
+    CriticInput, Head, TrainBatch, alive_observations, assemble, epoch_order,
+    explained_variance, standardize,
 };
 use super::coordination::{Coordination, MetaStep};
 use super::ppo::{clipped_surrogate, decoupled_surrogate, value_loss};
@@ -65,8 +66,6 @@ pub struct SharedPpo<C> {
     adam: Adam,
     /// The KL penalty's current coefficient (0: no penalty).
     kl_coef: f64,
-    /// run.max_agent_steps, what `ppo.lr_schedule` anneals over.
-    agent_step_budget: u64,
     seed: u64,
     updates: u64,
 }
@@ -129,7 +128,6 @@ impl<C: CriticInput> SharedPpo<C> {
             critics,
             adam,
             kl_coef: config.kl_coef,
-            agent_step_budget: run.run.max_agent_steps,
             seed: run.run.seed,
             updates: 0,
         }
@@ -138,45 +136,23 @@ impl<C: CriticInput> SharedPpo<C> {
     fn updates_key(&self) -> String {
         format!("{}.updates", self.name)
     }
-}
 
-fn value(critic: &Mlp, critic_inputs: &Tensor) -> Tensor {
-    critic.forward(critic_inputs).squeeze_dim(-1)
-}
-
-impl<C: CriticInput> Algorithm for SharedPpo<C> {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-
-    fn policy(&self) -> &dyn Policy {
-        &self.policy
-    }
-
-    fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
-        self.policy
-            .to_bytes_with_metadata(version, self.coordination.policy_metadata())
-    }
-
-    fn set_progress(&mut self, agent_steps: u64) {
-        let c = &self.config;
-        self.adam.set_learning_rate(c.lr_schedule.learning_rate(
-            c.learning_rate,
-            agent_steps,
-            self.agent_step_budget,
-        ));
-    }
-
-    fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
-        let c = self.config.clone();
-        if c.normalize_observations {
-            // The policy's own (f32) statistics are the state, so a restored learner continues
-            // bit for bit.
+    /// Folds the batch's observations into the policy's running statistics. The policy's own
+    /// (f32) statistics are the state, so a restored learner continues bit for bit.
+    fn fold_observations(&mut self, fragments: &[RolloutFragment]) -> Result<(), AlgoError> {
+        if self.config.normalize_observations {
             let mut stats = self.policy.obs_stats()?;
             stats.update(&alive_observations(fragments));
             self.policy.set_obs_stats(&stats);
         }
-        let device = self.policy.device();
+        Ok(())
+    }
+
+    /// Batch assembly (critic inputs, every value head's GAE), the policy's advantages, and
+    /// what the objective needs of the policy this update starts from, all fixed for the
+    /// update's minibatches.
+    fn prepare(&self, fragments: &[RolloutFragment]) -> Result<Prepared, AlgoError> {
+        let c = &self.config;
         let mut heads = Vec::new();
         for (index, (signal, critic)) in self
             .coordination
@@ -213,169 +189,191 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             &heads,
             |obs| self.policy.normalize(obs),
             c.gae_lambda,
-            device,
+            self.policy.device(),
         )?;
         drop(heads);
         if batch.len == 0 {
             return Err(AlgoError::EmptyBatch);
         }
-        let policy_advantages = self.coordination.policy_advantages(&batch)?;
+        // The statistics stay fixed for the update: normalised once, not per minibatch.
+        let obs = self.policy.normalize(&batch.obs);
+        let objective = match c.objective {
+            PpoObjective::Clipped => Objective::Clipped,
+            PpoObjective::Decoupled => Objective::Decoupled,
+        };
         // The policy this update starts from: decoupled PPO's proximal policy, the KL anchor.
-        let decoupled = c.objective == PpoObjective::Decoupled;
-        let start = (decoupled || self.kl_coef > 0.0).then(|| {
+        let start = (objective == Objective::Decoupled || self.kl_coef > 0.0).then(|| {
             tch::no_grad(|| {
-                let (mean, log_std) = self.policy.distribution(&self.policy.normalize(&batch.obs));
+                let (mean, log_std) = self.policy.distribution(&obs);
                 // Copies, not views of the parameters the optimiser is about to change.
                 (mean, log_std.copy())
             })
         });
-        let proximal_log_probs = match (&start, decoupled) {
-            (Some((mean, log_std)), true) => Some(tch::no_grad(|| {
+        let proximal_log_probs = match (&start, objective) {
+            (Some((mean, log_std)), Objective::Decoupled) => Some(tch::no_grad(|| {
                 gaussian_log_prob(mean, log_std, &batch.actions)
             })),
             _ => None,
         };
-        let before = if self.coordination.learns() {
-            Some(GaussianPolicy::from_bytes(&self.policy.to_bytes(0)?, device)?.0)
-        } else {
-            None
+        let rows = Rows {
+            critic_inputs: batch.critic_inputs.shallow_clone(),
+            actions: batch.actions.shallow_clone(),
+            behaviour_log_probs: batch.old_log_probs.shallow_clone(),
+            advantages: self.coordination.policy_advantages(&batch)?,
+            value_targets: batch
+                .heads
+                .iter()
+                .map(|h| (h.old_values.shallow_clone(), h.returns.shallow_clone()))
+                .collect(),
+            cost_advantages: self
+                .safety
+                .as_ref()
+                .and_then(|_| batch.heads.last())
+                .map(|h| h.advantages.shallow_clone()),
+            proximal_log_probs,
+            kl_anchor: start.filter(|_| self.kl_coef > 0.0),
+            obs,
         };
-        let mut rng =
-            ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
-        let main = &batch.heads[0];
-        let mut stats = UpdateStats {
-            agent_steps: batch.len,
-            explained_variance: explained_variance(&main.old_values, &main.returns),
-            learning_rate: self.adam.learning_rate(),
-            ..UpdateStats::default()
-        };
-        let mut minibatches = 0usize;
-        for _ in 0..c.epochs {
-            for idx in epoch_minibatches(batch.len, c.minibatch_size, &mut rng, device) {
-                let obs = self.policy.normalize(&batch.obs.index_select(0, &idx));
-                let critic_inputs = batch.critic_inputs.index_select(0, &idx);
-                let scale = |a: Tensor| {
-                    if c.normalize_advantages {
-                        standardize(&a)
-                    } else {
-                        a
-                    }
-                };
-                let mut advantages = scale(policy_advantages.index_select(0, &idx));
-                let head_loss = |v: Tensor, head: usize| {
-                    let h = &batch.heads[head];
-                    value_loss(
-                        &v,
-                        &h.old_values.index_select(0, &idx),
-                        &h.returns.index_select(0, &idx),
-                        c.value_clip,
-                    )
-                };
-                let v_losses: Vec<Tensor> = self
-                    .critics
-                    .iter()
-                    .enumerate()
-                    .map(|(head, critic)| head_loss(value(critic, &critic_inputs), head))
-                    .collect();
-                let mut extra_v_loss = v_losses[1..]
-                    .iter()
-                    .fold(Tensor::zeros([], (Kind::Float, device)), |a, b| a + b);
-                if let Some(safety) = &self.safety {
-                    let cost = batch.heads.len() - 1;
-                    let cost_advantages = scale(batch.heads[cost].advantages.index_select(0, &idx));
-                    advantages = safety.mixed_advantage(&advantages, &cost_advantages);
-                    extra_v_loss += head_loss(safety.cost_value(&critic_inputs), cost);
-                }
-                let (mean, log_std) = self.policy.distribution(&obs);
-                let log_probs =
-                    gaussian_log_prob(&mean, &log_std, &batch.actions.index_select(0, &idx));
-                let behaviour_log_probs = batch.old_log_probs.index_select(0, &idx);
-                let surrogate = match &proximal_log_probs {
-                    None => {
-                        clipped_surrogate(&log_probs, &behaviour_log_probs, &advantages, c.clip)
-                    }
-                    Some(proximal) => decoupled_surrogate(
-                        &log_probs,
-                        &proximal.index_select(0, &idx),
-                        &behaviour_log_probs,
-                        &advantages,
-                        c.clip,
-                        c.max_importance_weight,
-                    ),
-                };
-                let v_loss = &v_losses[0];
-                let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
-                let mut loss = &surrogate.loss + (v_loss + &extra_v_loss) * c.value_coef
-                    - &entropy * c.entropy_coef;
-                let mut kl = None;
-                if let (Some((start_mean, start_log_std)), true) = (&start, self.kl_coef > 0.0) {
-                    let divergence = gaussian_kl(
-                        &start_mean.index_select(0, &idx),
-                        &start_log_std.index_select(0, &idx),
-                        &mean,
-                        &log_std,
-                    )
-                    .mean(Kind::Float);
-                    loss += &divergence * self.kl_coef;
-                    kl = Some(divergence);
-                }
-                let loss_value = f64::try_from(&loss)?;
-                if !loss_value.is_finite() {
-                    stats.skipped_minibatches += 1;
-                    continue;
-                }
-                self.adam.zero_grad();
-                loss.backward();
-                stats.grad_norm += self.adam.clip_grad_norm(c.max_grad_norm);
-                self.adam.step();
-                stats.policy_loss += f64::try_from(&surrogate.loss)?;
-                stats.value_loss += f64::try_from(v_loss)?;
-                stats.entropy += f64::try_from(&entropy)?;
-                stats.approx_kl += f64::try_from(&surrogate.approx_kl)?;
-                stats.clip_fraction += f64::try_from(&surrogate.clip_fraction)?;
-                if let Some(kl) = &kl {
-                    stats.kl += f64::try_from(kl)?;
-                }
-                stats.samples_trained += idx.size()[0] as usize;
-                minibatches += 1;
-            }
+        Ok(Prepared {
+            batch,
+            rows,
+            objective,
+        })
+    }
+
+    /// The policy before this update, for coordination that learns from the update's effect.
+    fn snapshot_for_coordination(&self) -> Result<Option<GaussianPolicy>, AlgoError> {
+        if !self.coordination.learns() {
+            return Ok(None);
         }
-        let n = minibatches.max(1) as f64;
-        for field in [
-            &mut stats.policy_loss,
-            &mut stats.value_loss,
-            &mut stats.entropy,
-            &mut stats.approx_kl,
-            &mut stats.clip_fraction,
-            &mut stats.grad_norm,
-            &mut stats.kl,
-        ] {
-            *field /= n;
-        }
-        if self.kl_coef > 0.0 {
-            // RLlib's schedule: keep the update's KL within a factor 2 of the target.
-            let factor = if stats.kl > 2.0 * c.kl_target {
-                1.5
-            } else if stats.kl < 0.5 * c.kl_target {
-                0.5
+        let bytes = self.policy.to_bytes(0)?;
+        Ok(Some(
+            GaussianPolicy::from_bytes(&bytes, self.policy.device())?.0,
+        ))
+    }
+
+    /// One minibatch: the loss, PPO's clipped surrogate with the value and entropy terms, and
+    /// Adam's step on it. None: the loss was not finite and the minibatch is skipped.
+    fn minibatch_step(
+        &mut self,
+        mb: &Rows,
+        objective: Objective,
+    ) -> Result<Option<Losses>, AlgoError> {
+        let c = &self.config;
+        let standardized = |a: &Tensor| {
+            if c.normalize_advantages {
+                standardize(a)
             } else {
-                1.0
-            };
-            // Kept at f32 precision, what checkpoints store, so a resumed run continues exactly.
-            self.kl_coef = f64::from((self.kl_coef * factor) as f32);
+                a.shallow_clone()
+            }
+        };
+        // The networks' passes: their gradients are taken by hand after the loss's (mlp.rs).
+        let policy_pass = self.policy.forward_pass(&mb.obs);
+        let value_passes: Vec<MlpPass> = self
+            .critics
+            .iter()
+            .chain(self.safety.as_ref().map(Lagrangian::cost_critic))
+            .map(|critic| critic.forward_pass(&mb.critic_inputs))
+            .collect();
+
+        let (mean, log_std) = self.policy.head(&policy_pass.output);
+        let log_probs = gaussian_log_prob(&mean, &log_std, &mb.actions);
+        let mut advantages = standardized(&mb.advantages);
+        if let (Some(safety), Some(cost)) = (&self.safety, &mb.cost_advantages) {
+            advantages = safety.mixed_advantage(&advantages, &standardized(cost));
         }
-        stats.kl_coef = self.kl_coef;
+        let surrogate = match (objective, &mb.proximal_log_probs) {
+            (Objective::Decoupled, Some(proximal)) => decoupled_surrogate(
+                &log_probs,
+                proximal,
+                &mb.behaviour_log_probs,
+                &advantages,
+                c.clip,
+                c.max_importance_weight,
+            ),
+            _ => clipped_surrogate(&log_probs, &mb.behaviour_log_probs, &advantages, c.clip),
+        };
+        let value_losses: Vec<Tensor> = value_passes
+            .iter()
+            .zip(&mb.value_targets)
+            .map(|(pass, (old, returns))| {
+                value_loss(&pass.output.squeeze_dim(-1), old, returns, c.value_clip)
+            })
+            .collect();
+        let other_heads = value_losses[1..].iter().fold(
+            Tensor::zeros([], (Kind::Float, self.policy.device())),
+            |a, b| a + b,
+        );
+        let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
+        let mut loss = &surrogate.loss + (&value_losses[0] + other_heads) * c.value_coef
+            - &entropy * c.entropy_coef;
+        let kl = mb.kl_anchor.as_ref().map(|(start_mean, start_log_std)| {
+            gaussian_kl(start_mean, start_log_std, &mean, &log_std).mean(Kind::Float)
+        });
+        if let Some(kl) = &kl {
+            loss += kl * self.kl_coef;
+        }
+
+        if !f64::try_from(&loss)?.is_finite() {
+            return Ok(None);
+        }
+        self.adam.zero_grad();
+        loss.backward();
+        policy_pass.backward();
+        value_passes.into_iter().for_each(MlpPass::backward);
+        let grad_norm = self.adam.clip_grad_norm(c.max_grad_norm);
+        self.adam.step();
+        Ok(Some(Losses {
+            policy: f64::try_from(&surrogate.loss)?,
+            value: f64::try_from(&value_losses[0])?,
+            entropy: f64::try_from(&entropy)?,
+            approx_kl: f64::try_from(&surrogate.approx_kl)?,
+            clip_fraction: f64::try_from(&surrogate.clip_fraction)?,
+            kl: kl.as_ref().map(f64::try_from).transpose()?.unwrap_or(0.0),
+            grad_norm,
+            samples: mb.obs.size()[0] as usize,
+        }))
+    }
+
+    /// RLlib's schedule for the KL penalty's coefficient: keep the update's KL within a
+    /// factor 2 of the target.
+    fn adapt_kl_coef(&mut self, kl: f64) {
+        if self.kl_coef <= 0.0 {
+            return;
+        }
+        let target = self.config.kl_target;
+        let factor = if kl > 2.0 * target {
+            1.5
+        } else if kl < 0.5 * target {
+            0.5
+        } else {
+            1.0
+        };
+        // Kept at f32 precision, what checkpoints store, so a resumed run continues exactly.
+        self.kl_coef = f64::from((self.kl_coef * factor) as f32);
+    }
+
+    /// After the epochs: coordination learns (the meta-gradient on the LCF), the LCF report,
+    /// and PPO-Lagrangian's multiplier.
+    fn after_epochs(
+        &mut self,
+        fragments: &[RolloutFragment],
+        batch: &TrainBatch,
+        before: Option<GaussianPolicy>,
+        rng: &mut ChaCha8Rng,
+        stats: &mut UpdateStats,
+    ) -> Result<(), AlgoError> {
         if let Some(before) = &before {
             self.coordination.learn(MetaStep {
                 fragments,
-                batch: &batch,
+                batch,
                 before,
                 after: &self.policy,
-                ppo: &c,
-                rng: &mut rng,
+                ppo: &self.config,
+                rng,
             })?;
         }
-        let lcf = self.coordination.report(fragments, &batch)?;
+        let lcf = self.coordination.report(fragments, batch)?;
         stats.lcf_mean_deg = lcf.mean_deg;
         stats.lcf_std_deg = lcf.std_deg;
         stats.lcf_phi_by_neighbours = lcf.by_neighbours;
@@ -383,6 +381,184 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
             safety.update_multiplier(fragments);
             stats.lagrange_multiplier = safety.multiplier();
         }
+        Ok(())
+    }
+}
+
+/// The surrogate an update optimises, chosen once from `ppo.objective`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Objective {
+    /// The ratio against the behaviour policy, clipped.
+    Clipped,
+    /// The ratio against the policy at the update's start, weighted by how far the behaviour
+    /// policy was from it (ppo.rs).
+    Decoupled,
+}
+
+/// An update's batch with what stays fixed for all its minibatches.
+struct Prepared {
+    batch: TrainBatch,
+    rows: Rows,
+    objective: Objective,
+}
+
+/// What the loss reads per row, in one order (the batch's, or an epoch's shuffle).
+struct Rows {
+    /// Observations normalised by the statistics of this update.
+    obs: Tensor,
+    critic_inputs: Tensor,
+    actions: Tensor,
+    behaviour_log_probs: Tensor,
+    /// The policy's advantage (coordination's), before each minibatch's standardisation.
+    advantages: Tensor,
+    /// Per value head (coordination's, then the cost's with `[safety]`): old values, returns.
+    value_targets: Vec<(Tensor, Tensor)>,
+    /// With `[safety]`: the cost advantage.
+    cost_advantages: Option<Tensor>,
+    /// Decoupled PPO: the log-probabilities under the policy the update started from.
+    proximal_log_probs: Option<Tensor>,
+    /// With a KL penalty: that policy's mean and log-std, what the penalty measures from.
+    kl_anchor: Option<(Tensor, Tensor)>,
+}
+
+impl Rows {
+    fn map(&self, f: impl Fn(&Tensor) -> Tensor) -> Rows {
+        Rows {
+            obs: f(&self.obs),
+            critic_inputs: f(&self.critic_inputs),
+            actions: f(&self.actions),
+            behaviour_log_probs: f(&self.behaviour_log_probs),
+            advantages: f(&self.advantages),
+            value_targets: self
+                .value_targets
+                .iter()
+                .map(|(old, returns)| (f(old), f(returns)))
+                .collect(),
+            cost_advantages: self.cost_advantages.as_ref().map(&f),
+            proximal_log_probs: self.proximal_log_probs.as_ref().map(&f),
+            kl_anchor: self.kl_anchor.as_ref().map(|(m, s)| (f(m), f(s))),
+        }
+    }
+
+    /// The rows in a fresh order drawn from `rng` (one copy per epoch: its minibatches are
+    /// then views).
+    fn shuffled(&self, rng: &mut ChaCha8Rng, len: usize) -> Rows {
+        let order = Tensor::from_slice(&epoch_order(len, rng)).to_device(self.obs.device());
+        self.map(|t| t.index_select(0, &order))
+    }
+
+    /// Consecutive minibatches of `size` rows (the last may be shorter).
+    fn minibatches(&self, size: usize) -> impl Iterator<Item = Rows> + '_ {
+        let len = self.obs.size()[0];
+        let size = size.max(1) as i64;
+        (0..len)
+            .step_by(size as usize)
+            .map(move |start| self.map(|t| t.narrow(0, start, size.min(len - start))))
+    }
+}
+
+/// One minibatch's loss terms and gradient norm, or their sums over an update.
+#[derive(Debug, Default)]
+struct Losses {
+    policy: f64,
+    value: f64,
+    entropy: f64,
+    approx_kl: f64,
+    clip_fraction: f64,
+    kl: f64,
+    grad_norm: f64,
+    samples: usize,
+}
+
+/// The sums of an update's minibatch losses, and how many were taken and skipped.
+#[derive(Debug, Default)]
+struct LossTotals {
+    sum: Losses,
+    minibatches: usize,
+    skipped: usize,
+}
+
+impl LossTotals {
+    fn add(&mut self, step: &Losses) {
+        let sum = &mut self.sum;
+        sum.policy += step.policy;
+        sum.value += step.value;
+        sum.entropy += step.entropy;
+        sum.approx_kl += step.approx_kl;
+        sum.clip_fraction += step.clip_fraction;
+        sum.kl += step.kl;
+        sum.grad_norm += step.grad_norm;
+        sum.samples += step.samples;
+        self.minibatches += 1;
+    }
+
+    /// Means over the minibatches taken.
+    fn into_stats(self, batch: &TrainBatch, learning_rate: f64) -> UpdateStats {
+        let n = self.minibatches.max(1) as f64;
+        let main = &batch.heads[0];
+        UpdateStats {
+            agent_steps: batch.len,
+            samples_trained: self.sum.samples,
+            policy_loss: self.sum.policy / n,
+            value_loss: self.sum.value / n,
+            entropy: self.sum.entropy / n,
+            approx_kl: self.sum.approx_kl / n,
+            clip_fraction: self.sum.clip_fraction / n,
+            kl: self.sum.kl / n,
+            grad_norm: self.sum.grad_norm / n,
+            explained_variance: explained_variance(&main.old_values, &main.returns),
+            learning_rate,
+            skipped_minibatches: self.skipped,
+            ..UpdateStats::default()
+        }
+    }
+}
+
+fn value(critic: &Mlp, critic_inputs: &Tensor) -> Tensor {
+    critic.infer(critic_inputs).squeeze_dim(-1)
+}
+
+impl<C: CriticInput> Algorithm for SharedPpo<C> {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn policy(&self) -> &dyn Policy {
+        &self.policy
+    }
+
+    fn policy_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError> {
+        self.policy
+            .to_bytes_with_metadata(version, self.coordination.policy_metadata())
+    }
+
+    fn set_progress(&mut self, budget_spent: Option<f64>) {
+        let c = &self.config;
+        self.adam
+            .set_learning_rate(c.lr_schedule.learning_rate(c.learning_rate, budget_spent));
+    }
+
+    /// The module documentation's outline, one line per stage.
+    fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
+        self.fold_observations(fragments)?;
+        let prepared = self.prepare(fragments)?;
+        let before = self.snapshot_for_coordination()?;
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut losses = LossTotals::default();
+        for _ in 0..self.config.epochs {
+            let shuffled = prepared.rows.shuffled(&mut rng, prepared.batch.len);
+            for minibatch in shuffled.minibatches(self.config.minibatch_size) {
+                match self.minibatch_step(&minibatch, prepared.objective)? {
+                    Some(step) => losses.add(&step),
+                    None => losses.skipped += 1,
+                }
+            }
+        }
+        let mut stats = losses.into_stats(&prepared.batch, self.adam.learning_rate());
+        self.adapt_kl_coef(stats.kl);
+        stats.kl_coef = self.kl_coef;
+        self.after_epochs(fragments, &prepared.batch, before, &mut rng, &mut stats)?;
         self.updates += 1;
         Ok(stats)
     }
