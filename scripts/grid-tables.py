@@ -20,24 +20,27 @@ Standard library only, so it runs without the venv.
 
 import csv
 import json
-import math
 import sys
 import tomllib
 from pathlib import Path
 
-# Two-sided 95 % quantiles of Student's t by degrees of freedom (tables; no scipy here).
-T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306,
-        9: 2.262, 10: 2.228, 15: 2.131, 20: 2.086, 30: 2.042}
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "python"))
+
+# The smoothing (CoPO's, over SMOOTHING scene episodes: the reference rows are such means,
+# where the runs' own rows are their windows of run.stats_window_scene_episodes) and the
+# intervals over seeds.
+from junction.analysis import (  # noqa: E402
+    SMOOTHING,
+    mean_ci,
+    read_progress,
+    smoothed_scene_success,
+)
 
 METHOD_ORDER = ["cl", "ippo", "ccppo-mf", "ccppo-concat", "copo", "dynamic-lcf"]
 METHOD_LABEL = {"cl": "CL", "ippo": "IPPO", "ccppo-mf": "CCPPO-MF",
                 "ccppo-concat": "CCPPO-Concat", "copo": "CoPO", "dynamic-lcf": "dynamic LCF"}
 SCENE_AGENTS = {"intersection": 30, "roundabout": 40}
 ENV_STEP_MARKS = [50_000, 100_000, 150_000, 200_000]
-# CoPO's smoothing of its curves (RLlib's metrics_smoothing_episodes): the reference rows are
-# means over the last 100 environment episodes, where the runs' own rows are their windows of
-# run.stats_window_scene_episodes.
-SMOOTHING = 100
 # CoPO's published curves (RLlib on MetaDrive 0.2.5, 8 seeds; shared/reference/metadrive-copo.md).
 REFERENCE = [
     ("intersection", "*CoPO's IPPO on MetaDrive (reference)*",
@@ -47,23 +50,6 @@ REFERENCE = [
 ]
 
 
-def t_quantile(df):
-    """The tabled quantile at the largest tabled df not above df (conservative)."""
-    return T975[max(k for k in T975 if k <= df)]
-
-
-def mean_ci(values):
-    """Mean and half-width of the 95 % t interval (None where a single value gives none)."""
-    values = [v for v in values if v is not None]
-    if not values:
-        return None, None
-    mean = sum(values) / len(values)
-    if len(values) < 2:
-        return mean, None
-    var = sum((v - mean) ** 2 for v in values) / (len(values) - 1)
-    return mean, t_quantile(len(values) - 1) * math.sqrt(var / len(values))
-
-
 def fmt(values, digits=2, signed=False):
     mean, half = mean_ci(values)
     if mean is None:
@@ -71,53 +57,6 @@ def fmt(values, digits=2, signed=False):
     sign = "+" if signed else ""
     text = f"{mean:{sign}.{digits}f}"
     return text if half is None else f"{text} ± {half:.{digits}f}"
-
-
-def read_progress(run_dir):
-    lines = []
-    with open(run_dir / "progress.jsonl") as f:
-        for line in f:
-            line = line.strip()
-            if line:
-                lines.append(json.loads(line))
-    return lines
-
-
-def without_rolled_back(lines):
-    """One history whose agent-steps only grow: a resumed learner trains on from its newest
-    checkpoint, so each line drops the lines before it that are further on than itself (the
-    training the resume rolled back), as `learner report` reads runs."""
-    kept = []
-    for line in lines:
-        while kept and kept[-1]["agent_steps"] > line["agent_steps"]:
-            kept.pop()
-        kept.append(line)
-    return kept
-
-
-def smoothed_scene_success(lines, episodes=SMOOTHING, key="agent_steps"):
-    """MetaDrive's training success smoothed as CoPO smoothed it, over the last `episodes`
-    scene episodes (at least; whole progress lines apart), from the lines' `scene_totals`:
-    (line[key], rate) per line with that many episodes of the run behind it, as `learner
-    report` computes it. Empty for runs written before `scene_totals` existed."""
-    lines = without_rolled_back(lines)
-    out, behind, offset, previous = [], [(0, 0.0)], (0, 0.0), None
-    for line in lines:
-        totals = line.get("scene_totals")
-        if not totals:
-            return []
-        # A resumed process counts from 0 again (its clock too): its totals continue the run's.
-        if previous is not None and (
-                totals["scene_episodes"] < previous["scene_totals"]["scene_episodes"]
-                or line.get("elapsed_s", 0) < previous.get("elapsed_s", 0)):
-            offset = behind[-1]
-        here = (offset[0] + totals["scene_episodes"], offset[1] + totals["success"])
-        base = next((b for b in reversed(behind) if b[0] <= here[0] - episodes), None)
-        if base is not None:
-            out.append((line[key], (here[1] - base[1]) / (here[0] - base[0])))
-        behind.append(here)
-        previous = line
-    return out
 
 
 def read_eval(run_dir, scene, seed, actions):

@@ -9,18 +9,22 @@ Overrides are the `[scenario]` keys of the run configuration (`learner config --
 nested sections joined by `__` (`reward__crash=-10.0`) or written as `--set` writes them
 (`**{"scenario.reward.crash": -10.0}`); they are checked exactly as `learner --set` checks
 them and refused with `ConfigError` (a `ValueError`). docs/PYTHON.md has the details.
+
+- `junction.analysis`: progress curves, CoPO's smoothing, intervals and tables of finished runs
+  (standard library only: it imports without the native module, so scripts run it from a
+  checkout before `make python`).
 """
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from typing import TYPE_CHECKING, Any
 
-import gymnasium
-
-from . import _native
-from ._config import ConfigError
-from .parallel import ParallelEnv
-from .vector import OUTCOMES, VectorEnv
+if TYPE_CHECKING:
+    from . import _native
+    from ._config import ConfigError
+    from .parallel import ParallelEnv
+    from .vector import OUTCOMES, VectorEnv
 
 __all__ = [
     "ConfigError",
@@ -33,13 +37,33 @@ __all__ = [
     "vector_env",
 ]
 
-#: Names `scenario=` accepts besides a scenario file's path.
-SHIPPED_SCENARIOS: tuple[str, ...] = tuple(_native.SHIPPED_SCENARIOS)
+# The environments need the native module (`make python`); they load on first use, so that
+# `junction.analysis` imports from a plain checkout.
+_LAZY = {
+    "ConfigError": ("._config", "ConfigError"),
+    "ParallelEnv": (".parallel", "ParallelEnv"),
+    "OUTCOMES": (".vector", "OUTCOMES"),
+    "VectorEnv": (".vector", "VectorEnv"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        module, attribute = _LAZY[name]
+        return getattr(importlib.import_module(module, __name__), attribute)
+    if name == "SHIPPED_SCENARIOS":
+        # Names `scenario=` accepts besides a scenario file's path.
+        from . import _native
+
+        return tuple(_native.SHIPPED_SCENARIOS)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def parallel_env(scenario: str = "intersection", seed: int = 0, **overrides: Any) -> ParallelEnv:
     """One scene of `scenario` as a PettingZoo `ParallelEnv` (`render_mode="rgb_array"` to
     draw it)."""
+    from .parallel import ParallelEnv
+
     return ParallelEnv(scenario, seed, **overrides)
 
 
@@ -47,6 +71,8 @@ def vector_env(
     scenario: str = "intersection", num_scenes: int = 1, seed: int = 0, **overrides: Any
 ) -> VectorEnv:
     """`num_scenes` scenes of `scenario`, every agent slot as NumPy arrays."""
+    from .vector import VectorEnv
+
     return VectorEnv(scenario, num_scenes, seed, **overrides)
 
 
@@ -57,10 +83,19 @@ def load_scenario(scenario: str = "intersection", **overrides: Any) -> _native.S
     return _config.load(scenario, overrides)
 
 
-# One learning car among the intersection's human drivers: 9 of them
-# (humans.share = 0.9 of the vehicles), MetaDrive's 4-way geometry.
-gymnasium.register(
-    id="Junction-Intersection-v0",
-    entry_point="junction.gym_env:SingleAgentEnv",
-    kwargs={"scenario": "intersection", "humans__share": 0.9},
-)
+def _register_gymnasium() -> None:
+    """One learning car among the intersection's human drivers: 9 of them (humans.share = 0.9
+    of the vehicles), MetaDrive's 4-way geometry. Skipped where gymnasium is not installed
+    (the analysis needs none of it)."""
+    try:
+        import gymnasium
+    except ImportError:
+        return
+    gymnasium.register(
+        id="Junction-Intersection-v0",
+        entry_point="junction.gym_env:SingleAgentEnv",
+        kwargs={"scenario": "intersection", "humans__share": 0.9},
+    )
+
+
+_register_gymnasium()
