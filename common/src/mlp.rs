@@ -42,6 +42,20 @@ impl Mlp {
         Mlp { layers }
     }
 
+    /// The same network, not a copy: its parameters (and their gradients) are shared. Owned,
+    /// so it can go to another thread.
+    pub fn shallow_clone(&self) -> Mlp {
+        let layers = self
+            .layers
+            .iter()
+            .map(|l| nn::Linear {
+                ws: l.ws.shallow_clone(),
+                bs: l.bs.as_ref().map(Tensor::shallow_clone),
+            })
+            .collect();
+        Mlp { layers }
+    }
+
     /// The forward pass for [`MlpPass::backward`]: no autograd graph through the layers; the
     /// output is a leaf that requires grad, for the loss to be built on.
     pub fn forward_pass(&self, x: &Tensor) -> MlpPass<'_> {

@@ -560,6 +560,9 @@ pub struct LearnerSection {
     pub ingest_queue_fragments: usize,
     pub max_policy_lag: u64,
     pub torch_threads: usize,
+    /// PPO on the CPU with 2+ threads: the policy's and the value heads' parts of each
+    /// minibatch on two threads of one libtorch thread each.
+    pub split_update: bool,
 }
 
 /// The learning algorithm (`learner/src/algo`, one file each).

@@ -66,6 +66,9 @@ pub struct SharedPpo<C> {
     adam: Adam,
     /// The KL penalty's current coefficient (0: no penalty).
     kl_coef: f64,
+    /// `learner.split_update` in effect: the policy's and the value part of each minibatch
+    /// on two threads.
+    parallel: bool,
     seed: u64,
     updates: u64,
 }
@@ -128,6 +131,7 @@ impl<C: CriticInput> SharedPpo<C> {
             critics,
             adam,
             kl_coef: config.kl_coef,
+            parallel: run.learner.split_update && device == Device::Cpu && tch::get_num_threads() >= 2,
             seed: run.run.seed,
             updates: 0,
         }
@@ -252,13 +256,74 @@ impl<C: CriticInput> SharedPpo<C> {
         ))
     }
 
-    /// One minibatch: the loss, PPO's clipped surrogate with the value and entropy terms, and
-    /// Adam's step on it. None: the loss was not finite and the minibatch is skipped.
+    /// One minibatch: the loss L = L_policy + c_v·L_value (PPO's clipped surrogate with the
+    /// entropy and KL terms, the value heads' losses), its gradients, and Adam's step. The two
+    /// parts share no parameter, so with `learner.split_update` each takes a thread of its own.
+    /// None: the loss was not finite and the minibatch is skipped.
     fn minibatch_step(
         &mut self,
         mb: &Rows,
         objective: Objective,
     ) -> Result<Option<Losses>, AlgoError> {
+        self.adam.zero_grad();
+        let value_part = ValuePart {
+            critics: self
+                .critics
+                .iter()
+                .chain(self.safety.as_ref().map(Lagrangian::cost_critic))
+                .map(Mlp::shallow_clone)
+                .collect(),
+            inputs: mb.critic_inputs.shallow_clone(),
+            targets: mb
+                .value_targets
+                .iter()
+                .map(|(old, returns)| (old.shallow_clone(), returns.shallow_clone()))
+                .collect(),
+            clip: self.config.value_clip,
+            coef: self.config.value_coef,
+        };
+        let (policy, value) = if self.parallel {
+            std::thread::scope(|scope| {
+                let value = scope.spawn(move || {
+                    // One thread each: libtorch's own threads would only compete with ours.
+                    tch::set_num_threads(1);
+                    value_part.loss_and_gradients()
+                });
+                let policy = self.policy_loss_and_gradients(mb, objective);
+                let value = value.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                (policy, value)
+            })
+        } else {
+            (
+                self.policy_loss_and_gradients(mb, objective),
+                value_part.loss_and_gradients(),
+            )
+        };
+        let (policy, value) = (policy?, value?);
+        if !(policy.loss.is_finite() && value.total.is_finite()) {
+            return Ok(None);
+        }
+        let grad_norm = self.adam.clip_grad_norm(self.config.max_grad_norm);
+        self.adam.step();
+        Ok(Some(Losses {
+            policy: policy.surrogate,
+            value: value.first_head,
+            entropy: policy.entropy,
+            approx_kl: policy.approx_kl,
+            clip_fraction: policy.clip_fraction,
+            kl: policy.kl,
+            grad_norm,
+            samples: mb.obs.size()[0] as usize,
+        }))
+    }
+
+    /// The policy's part of a minibatch's loss: −clipped surrogate − c_e·entropy (+ β·KL),
+    /// and its gradients when it is finite.
+    fn policy_loss_and_gradients(
+        &self,
+        mb: &Rows,
+        objective: Objective,
+    ) -> Result<PolicyTerms, AlgoError> {
         let c = &self.config;
         let standardized = |a: &Tensor| {
             if c.normalize_advantages {
@@ -267,16 +332,9 @@ impl<C: CriticInput> SharedPpo<C> {
                 a.shallow_clone()
             }
         };
-        // The networks' passes: their gradients are taken by hand after the loss's (mlp.rs).
-        let policy_pass = self.policy.forward_pass(&mb.obs);
-        let value_passes: Vec<MlpPass> = self
-            .critics
-            .iter()
-            .chain(self.safety.as_ref().map(Lagrangian::cost_critic))
-            .map(|critic| critic.forward_pass(&mb.critic_inputs))
-            .collect();
-
-        let (mean, log_std) = self.policy.head(&policy_pass.output);
+        // The network's pass: its gradients are taken by hand after the loss's (mlp.rs).
+        let pass = self.policy.forward_pass(&mb.obs);
+        let (mean, log_std) = self.policy.head(&pass.output);
         let log_probs = gaussian_log_prob(&mean, &log_std, &mb.actions);
         let mut advantages = standardized(&mb.advantages);
         if let (Some(safety), Some(cost)) = (&self.safety, &mb.cost_advantages) {
@@ -293,46 +351,27 @@ impl<C: CriticInput> SharedPpo<C> {
             ),
             _ => clipped_surrogate(&log_probs, &mb.behaviour_log_probs, &advantages, c.clip),
         };
-        let value_losses: Vec<Tensor> = value_passes
-            .iter()
-            .zip(&mb.value_targets)
-            .map(|(pass, (old, returns))| {
-                value_loss(&pass.output.squeeze_dim(-1), old, returns, c.value_clip)
-            })
-            .collect();
-        let other_heads = value_losses[1..].iter().fold(
-            Tensor::zeros([], (Kind::Float, self.policy.device())),
-            |a, b| a + b,
-        );
         let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
-        let mut loss = &surrogate.loss + (&value_losses[0] + other_heads) * c.value_coef
-            - &entropy * c.entropy_coef;
+        let mut loss = &surrogate.loss - &entropy * c.entropy_coef;
         let kl = mb.kl_anchor.as_ref().map(|(start_mean, start_log_std)| {
             gaussian_kl(start_mean, start_log_std, &mean, &log_std).mean(Kind::Float)
         });
         if let Some(kl) = &kl {
             loss += kl * self.kl_coef;
         }
-
-        if !f64::try_from(&loss)?.is_finite() {
-            return Ok(None);
+        let loss_value = f64::try_from(&loss)?;
+        if loss_value.is_finite() {
+            loss.backward();
+            pass.backward();
         }
-        self.adam.zero_grad();
-        loss.backward();
-        policy_pass.backward();
-        value_passes.into_iter().for_each(MlpPass::backward);
-        let grad_norm = self.adam.clip_grad_norm(c.max_grad_norm);
-        self.adam.step();
-        Ok(Some(Losses {
-            policy: f64::try_from(&surrogate.loss)?,
-            value: f64::try_from(&value_losses[0])?,
+        Ok(PolicyTerms {
+            loss: loss_value,
+            surrogate: f64::try_from(&surrogate.loss)?,
             entropy: f64::try_from(&entropy)?,
             approx_kl: f64::try_from(&surrogate.approx_kl)?,
             clip_fraction: f64::try_from(&surrogate.clip_fraction)?,
             kl: kl.as_ref().map(f64::try_from).transpose()?.unwrap_or(0.0),
-            grad_norm,
-            samples: mb.obs.size()[0] as usize,
-        }))
+        })
     }
 
     /// RLlib's schedule for the KL penalty's coefficient: keep the update's KL within a
@@ -457,6 +496,88 @@ impl Rows {
     }
 }
 
+/// The value heads' part of a minibatch's loss, Σ_h L_V(V_h(x), R_h) over coordination's
+/// heads (and the cost critic with `[safety]`). It owns what it reads (shallow clones: the
+/// critics' parameters and gradients are the learner's own), so it can run on a thread of its
+/// own.
+struct ValuePart {
+    critics: Vec<Mlp>,
+    inputs: Tensor,
+    /// Per head: old values, returns.
+    targets: Vec<(Tensor, Tensor)>,
+    clip: f64,
+    /// c_v, the value loss's weight in the whole loss.
+    coef: f64,
+}
+
+impl ValuePart {
+    /// The loss and, when it is finite, the critics' gradients of c_v times it.
+    fn loss_and_gradients(self) -> Result<ValueTerms, tch::TchError> {
+        let passes: Vec<MlpPass> = self
+            .critics
+            .iter()
+            .map(|critic| critic.forward_pass(&self.inputs))
+            .collect();
+        let losses: Vec<Tensor> = passes
+            .iter()
+            .zip(&self.targets)
+            .map(|(pass, (old, returns))| {
+                value_loss(&pass.output.squeeze_dim(-1), old, returns, self.clip)
+            })
+            .collect();
+        let other_heads = losses[1..].iter().fold(
+            Tensor::zeros([], (Kind::Float, self.inputs.device())),
+            |a, b| a + b,
+        );
+        let total = &losses[0] + other_heads;
+        let total_value = f64::try_from(&total)?;
+        if total_value.is_finite() {
+            (total * self.coef).backward();
+            passes.into_iter().for_each(MlpPass::backward);
+        }
+        Ok(ValueTerms {
+            total: total_value,
+            first_head: f64::try_from(&losses[0])?,
+        })
+    }
+}
+
+/// What [`SharedPpo::policy_loss_and_gradients`] reports of a minibatch.
+struct PolicyTerms {
+    /// The policy's whole loss (finite: its gradients were taken).
+    loss: f64,
+    surrogate: f64,
+    entropy: f64,
+    approx_kl: f64,
+    clip_fraction: f64,
+    kl: f64,
+}
+
+/// What [`ValuePart::loss_and_gradients`] reports of a minibatch.
+struct ValueTerms {
+    /// Σ_h L_V (finite: its gradients were taken).
+    total: f64,
+    /// The first head's (coordination's main signal): what progress lines report.
+    first_head: f64,
+}
+
+/// libtorch at one thread on this thread until dropped, then back to what it was.
+struct OneTorchThread(i32);
+
+impl OneTorchThread {
+    fn set() -> Self {
+        let before = tch::get_num_threads();
+        tch::set_num_threads(1);
+        OneTorchThread(before)
+    }
+}
+
+impl Drop for OneTorchThread {
+    fn drop(&mut self) {
+        tch::set_num_threads(self.0);
+    }
+}
+
 /// One minibatch's loss terms and gradient norm, or their sums over an update.
 #[derive(Debug, Default)]
 struct Losses {
@@ -546,6 +667,7 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         let mut rng =
             ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let mut losses = LossTotals::default();
+        let _one_thread_each = self.parallel.then(OneTorchThread::set);
         for _ in 0..self.config.epochs {
             let shuffled = prepared.rows.shuffled(&mut rng, prepared.batch.len);
             for minibatch in shuffled.minibatches(self.config.minibatch_size) {
