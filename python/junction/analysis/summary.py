@@ -1,0 +1,130 @@
+"""An experiment's `summary.json`: every run of a results folder as `record_from_run` keeps it
+(and every evaluation made outside a run directory), written before the raw files go, and read
+back as `RunRecord`s. Also where tables find their runs: `load(SOURCE...)`.
+
+A SOURCE is a results folder (its raw run directories if it still has them, else its
+`summary.json`), a `summary.json`, or one run directory; `SOURCE:GLOB[,GLOB...]` keeps the runs
+whose name in the experiment (`runs/ippo-intersection-s1`) matches one of the globs."""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+from pathlib import Path
+
+from .record import AGENT_STEP_MARK, ENV_STEP_MARK, RunRecord, record_from_run
+from .runs import SMOOTHING, RawRun, flatten, read_config, read_evals
+
+FORMAT = "junction-summary/1"
+SUMMARY = "summary.json"
+
+
+def run_dirs(root: Path) -> list[Path]:
+    """Directories under root (root included) holding a `progress.jsonl`, sorted."""
+    root = Path(root)
+    return sorted(p.parent for p in root.rglob("progress.jsonl"))
+
+
+def eval_dirs(root: Path, runs: list[Path]) -> list[Path]:
+    """Directories under root holding evaluation JSONs (directly or in `eval/`) that are no
+    run's own `eval/`: evaluations of checkpoints made elsewhere (the 2 × 2, baselines)."""
+    found = set()
+    for p in Path(root).rglob("eval-*.json"):
+        d = p.parent
+        if d.name == "eval" and (d.parent / "progress.jsonl").exists():
+            continue
+        found.add(d.parent if d.name == "eval" else d)
+    return sorted(found)
+
+
+def summarize(root: str | Path, command: str | None = None) -> dict:
+    """The summary of a results folder from its raw files."""
+    root = Path(root)
+    runs = run_dirs(root)
+    base = read_config(runs[0] / "config.toml") if runs else {}
+    base_flat = flatten(base)
+    entries = []
+    for d in runs:
+        name = str(d.relative_to(root)) if d != root else "."
+        entries.append(record_from_run(RawRun(d), name, base_flat))
+    for d in eval_dirs(root, runs):
+        evals = read_evals(d / "eval") + read_evals(d)
+        entries.append({"name": str(d.relative_to(root)), "evals": evals})
+    return {
+        "format": FORMAT,
+        "experiment": root.name,
+        "made_by": command or f"python -m junction.analysis summarize {root}",
+        "config": "config.toml" if runs else None,
+        "config_of": str(runs[0].relative_to(root)) if runs else None,
+        "curve_marks": {"agent_steps": AGENT_STEP_MARK, "env_steps": ENV_STEP_MARK,
+                        "smoothing_scene_episodes": SMOOTHING},
+        "runs": entries,
+    }
+
+
+def dumps(summary: dict) -> str:
+    """JSON with one run per line: readable, diffable, small."""
+    head = {k: v for k, v in summary.items() if k != "runs"}
+    text = json.dumps(head, indent=1, ensure_ascii=False)[:-2]
+    body = ",\n".join("  " + json.dumps(r, ensure_ascii=False, separators=(",", ":"))
+                      for r in summary["runs"])
+    return text + ',\n "runs": [\n' + body + "\n ]\n}\n"
+
+
+def write_summary(root: str | Path, command: str | None = None) -> dict:
+    """Summarise a results folder into root/summary.json, and its base run's effective
+    configuration into root/config.toml (every run's keys that differ from it are in the
+    summary). Returns the summary."""
+    root = Path(root)
+    summary = summarize(root, command)
+    (root / SUMMARY).write_text(dumps(summary))
+    if summary["config_of"]:
+        source = root / summary["config_of"] / "config.toml"
+        if source.exists():
+            (root / "config.toml").write_text(source.read_text())
+    return summary
+
+
+def read_summary(path: str | Path) -> dict:
+    path = Path(path)
+    if path.is_dir():
+        path = path / SUMMARY
+    summary = json.loads(path.read_text())
+    if summary.get("format") != FORMAT:
+        raise ValueError(f"{path}: format {summary.get('format')!r}, not {FORMAT}")
+    return summary
+
+
+def _split(source: str) -> tuple[Path, list[str]]:
+    path, _, globs = str(source).partition(":")
+    return Path(path), [g for g in globs.split(",") if g]
+
+
+def load(sources, training_only: bool = False) -> list[RunRecord]:
+    """The runs of every SOURCE (see the module's docstring), in order."""
+    out: list[RunRecord] = []
+    for source in sources:
+        path, globs = _split(source)
+        if (path / "progress.jsonl").exists():
+            records = [RunRecord(record_from_run(RawRun(path), path.name), str(path.parent))]
+        elif path.is_dir() and run_dirs(path):
+            base = flatten(read_config(run_dirs(path)[0] / "config.toml"))
+            records = [RunRecord(record_from_run(RawRun(d), str(d.relative_to(path)), base),
+                                 str(path)) for d in run_dirs(path)]
+            records += [RunRecord({"name": str(d.relative_to(path)),
+                                   "evals": read_evals(d / "eval") + read_evals(d)}, str(path))
+                        for d in eval_dirs(path, run_dirs(path))]
+        elif path.is_file() or (path / SUMMARY).exists():
+            summary = read_summary(path)
+            experiment = str(path.parent if path.is_file() else path)
+            records = [RunRecord(r, experiment) for r in summary["runs"]]
+        else:
+            raise FileNotFoundError(f"{path}: no run directory, results folder or {SUMMARY}")
+        if globs:
+            records = [r for r in records if any(fnmatch.fnmatch(r.name, g) for g in globs)]
+            if not records:
+                raise ValueError(f"{source}: no run matches {globs}")
+        if training_only:
+            records = [r for r in records if r.is_training]
+        out.extend(records)
+    return out
