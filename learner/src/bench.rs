@@ -12,7 +12,7 @@ use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
 
-use crate::algo::{AlgoError, Algorithm};
+use crate::algo::{AlgoError, Algorithm, Phases};
 
 #[derive(Debug, serde::Serialize)]
 pub struct BenchReport {
@@ -28,6 +28,16 @@ pub struct BenchReport {
     pub samples_per_s: f64,
     /// Agent-steps of rollout consumed per second of updating.
     pub agent_steps_per_s: f64,
+    /// Where an update's time went: seconds per update by phase, in the update's order (the
+    /// PPO algorithms; with `learner.split_update` the value part's phases run on their own
+    /// thread beside the policy's, so the phases add up to more than the update).
+    pub phases_s_per_update: Vec<PhaseSeconds>,
+}
+
+#[derive(Debug, serde::Serialize)]
+pub struct PhaseSeconds {
+    pub phase: &'static str,
+    pub seconds: f64,
 }
 
 /// Neighbours every synthetic agent lists (the next slots, wrapping round): a stand-in so the
@@ -103,10 +113,12 @@ pub fn run(
     algorithm.update(&batch)?;
     let started = Instant::now();
     let (mut samples, mut agent_steps) = (0usize, 0usize);
+    let mut phases = Phases::default();
     for _ in 0..updates {
         let stats = algorithm.update(&batch)?;
         samples += stats.samples_trained;
         agent_steps += stats.agent_steps;
+        phases.merge(&stats.phases);
     }
     let seconds = started.elapsed().as_secs_f64();
     Ok(BenchReport {
@@ -122,6 +134,14 @@ pub fn run(
         seconds,
         samples_per_s: samples as f64 / seconds,
         agent_steps_per_s: agent_steps as f64 / seconds,
+        phases_s_per_update: phases
+            .0
+            .into_iter()
+            .map(|(phase, total)| PhaseSeconds {
+                phase,
+                seconds: total / updates.max(1) as f64,
+            })
+            .collect(),
     })
 }
 

@@ -9,6 +9,7 @@ use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
 
+use super::Phases;
 use super::gae::{Estimates, Trajectories, gae};
 
 /// Alive cells of every fragment, in (fragment, step, slot) order, on the training device.
@@ -123,29 +124,32 @@ pub fn assemble(
     normalize: impl Fn(&Tensor) -> Tensor,
     lambda: f32,
     device: Device,
+    phases: &mut Phases,
 ) -> Result<TrainBatch, tch::TchError> {
     let obs_dim = fragments.first().map_or(1, |f| f.obs_dim);
     let action_dim = fragments.first().map_or(1, |f| f.action_dim);
     let width = input.width(obs_dim, action_dim);
     let (mut rows, mut bootstrap_rows) = (Vec::new(), Vec::new());
-    tch::no_grad(|| -> Result<(), tch::TchError> {
-        for raw in fragments {
-            let f = NormalizedFragment {
-                raw,
-                obs: normalized(&raw.obs, obs_dim, &normalize, device)?,
-                bootstrap_obs: normalized(&raw.bootstrap_obs, obs_dim, &normalize, device)?,
-            };
-            for t in 0..raw.steps {
-                for slot in (0..raw.agents).filter(|&s| raw.alive[raw.index(t, s)]) {
-                    input.row(&f, f.obs(t, slot), t, slot, &mut rows);
+    phases.time("assembly: critic input rows", || {
+        tch::no_grad(|| -> Result<(), tch::TchError> {
+            for raw in fragments {
+                let f = NormalizedFragment {
+                    raw,
+                    obs: normalized(&raw.obs, obs_dim, &normalize, device)?,
+                    bootstrap_obs: normalized(&raw.bootstrap_obs, obs_dim, &normalize, device)?,
+                };
+                for t in 0..raw.steps {
+                    for slot in (0..raw.agents).filter(|&s| raw.alive[raw.index(t, s)]) {
+                        input.row(&f, f.obs(t, slot), t, slot, &mut rows);
+                    }
+                }
+                for slot in (0..raw.agents).filter(|&s| raw.needs_bootstrap(s)) {
+                    let own = &f.bootstrap_obs[slot * obs_dim..(slot + 1) * obs_dim];
+                    input.row(&f, own, raw.steps - 1, slot, &mut bootstrap_rows);
                 }
             }
-            for slot in (0..raw.agents).filter(|&s| raw.needs_bootstrap(s)) {
-                let own = &f.bootstrap_obs[slot * obs_dim..(slot + 1) * obs_dim];
-                input.row(&f, own, raw.steps - 1, slot, &mut bootstrap_rows);
-            }
-        }
-        Ok(())
+            Ok(())
+        })
     })?;
     let alive_rows = rows.len() / width;
     rows.extend_from_slice(&bootstrap_rows);
@@ -157,45 +161,50 @@ pub fn assemble(
     let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
     let mut estimates = Vec::with_capacity(heads.len());
     for head in heads {
-        let values: Vec<f32> = tch::no_grad(|| {
-            Vec::<f32>::try_from(
-                (head.value)(&critic_inputs)
-                    .to_device(Device::Cpu)
-                    .to_kind(Kind::Float)
-                    .flatten(0, -1),
-            )
+        let values: Vec<f32> = phases.time("assembly: value estimates", || {
+            tch::no_grad(|| {
+                Vec::<f32>::try_from(
+                    (head.value)(&critic_inputs)
+                        .to_device(Device::Cpu)
+                        .to_kind(Kind::Float)
+                        .flatten(0, -1),
+                )
+            })
         })?;
-        let (advantages, returns, old_values) =
-            head_estimates(fragments, head, &values, alive_rows, lambda);
+        let (advantages, returns, old_values) = phases.time("assembly: GAE", || {
+            head_estimates(fragments, head, &values, alive_rows, lambda)
+        });
         estimates.push(HeadEstimates {
             advantages: to(&advantages),
             returns: to(&returns),
             old_values: to(&old_values),
         });
     }
-
-    let mut obs = Vec::with_capacity(alive_rows * obs_dim);
-    let mut actions = Vec::new();
-    let mut old_log_probs = Vec::new();
-    for f in fragments {
-        for t in 0..f.steps {
-            for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
-                let cell = f.index(t, slot);
-                obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
-                actions
-                    .extend_from_slice(&f.actions[cell * f.action_dim..(cell + 1) * f.action_dim]);
-                old_log_probs.push(f.log_probs[cell]);
+    phases.time("assembly: batch tensors", || {
+        let mut obs = Vec::with_capacity(alive_rows * obs_dim);
+        let mut actions = Vec::new();
+        let mut old_log_probs = Vec::new();
+        for f in fragments {
+            for t in 0..f.steps {
+                for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
+                    let cell = f.index(t, slot);
+                    obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
+                    actions.extend_from_slice(
+                        &f.actions[cell * f.action_dim..(cell + 1) * f.action_dim],
+                    );
+                    old_log_probs.push(f.log_probs[cell]);
+                }
             }
         }
-    }
-    Ok(TrainBatch {
-        obs: to(&obs).reshape([n, obs_dim as i64]),
-        critic_inputs: critic_inputs.narrow(0, 0, n),
-        actions: to(&actions).reshape([n, action_dim as i64]),
-        old_log_probs: to(&old_log_probs),
-        heads: estimates,
-        neighbour_counts: alive_neighbour_counts(fragments),
-        len: alive_rows,
+        Ok(TrainBatch {
+            obs: to(&obs).reshape([n, obs_dim as i64]),
+            critic_inputs: critic_inputs.narrow(0, 0, n),
+            actions: to(&actions).reshape([n, action_dim as i64]),
+            old_log_probs: to(&old_log_probs),
+            heads: estimates,
+            neighbour_counts: alive_neighbour_counts(fragments),
+            len: alive_rows,
+        })
     })
 }
 

@@ -17,6 +17,8 @@ pub mod replay;
 pub mod safety;
 pub mod shared_ppo;
 
+use std::time::Instant;
+
 use tch::{Device, Tensor};
 
 use junction_common::config::{AlgoKind, RunConfig};
@@ -32,6 +34,35 @@ use ccppo_mf::MeanField;
 use coordination::{Coordination, FixedLcf};
 use ippo::OwnObservation;
 use shared_ppo::SharedPpo;
+
+/// Seconds an update spent in each of its phases, in the order first met: the profile
+/// `learner bench` prints (BENCHMARKS.md, "Where an update's time goes").
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Phases(pub Vec<(&'static str, f64)>);
+
+impl Phases {
+    pub fn add(&mut self, phase: &'static str, seconds: f64) {
+        match self.0.iter_mut().find(|(name, _)| *name == phase) {
+            Some((_, total)) => *total += seconds,
+            None => self.0.push((phase, seconds)),
+        }
+    }
+
+    /// Runs `f`, adding its time to `phase`.
+    pub fn time<T>(&mut self, phase: &'static str, f: impl FnOnce() -> T) -> T {
+        let started = Instant::now();
+        let out = f();
+        self.add(phase, started.elapsed().as_secs_f64());
+        out
+    }
+
+    /// Adds every phase of `other`.
+    pub fn merge(&mut self, other: &Phases) {
+        for &(phase, seconds) in &other.0 {
+            self.add(phase, seconds);
+        }
+    }
+}
 
 /// Diagnostics of one policy update, averaged over its minibatches (DQN: over its gradient
 /// steps; its TD loss is `value_loss`).
@@ -71,6 +102,8 @@ pub struct UpdateStats {
     pub replay_transitions: usize,
     /// Fragments not trained on because their actions are off the algorithm's action grid.
     pub off_grid_fragments: usize,
+    /// Where the update's time went (the PPO algorithms; empty for DQN).
+    pub phases: Phases,
 }
 
 #[derive(Debug, thiserror::Error)]

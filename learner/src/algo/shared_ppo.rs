@@ -22,6 +22,7 @@
 //! ```
 
 use std::borrow::Cow;
+use std::time::Instant;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -43,7 +44,7 @@ use super::batch::{
 use super::coordination::{Coordination, MetaStep};
 use super::ppo::{clipped_surrogate, decoupled_surrogate, value_loss};
 use super::safety::Lagrangian;
-use super::{AlgoError, Algorithm, UpdateStats};
+use super::{AlgoError, Algorithm, Phases, UpdateStats};
 use crate::optim::Adam;
 
 /// Checkpoint key of the Lagrange multiplier.
@@ -155,7 +156,11 @@ impl<C: CriticInput> SharedPpo<C> {
     /// Batch assembly (critic inputs, every value head's GAE), the policy's advantages, and
     /// what the objective needs of the policy this update starts from, all fixed for the
     /// update's minibatches.
-    fn prepare(&self, fragments: &[RolloutFragment]) -> Result<Prepared, AlgoError> {
+    fn prepare(
+        &self,
+        fragments: &[RolloutFragment],
+        phases: &mut Phases,
+    ) -> Result<Prepared, AlgoError> {
         let c = &self.config;
         let mut heads = Vec::new();
         for (index, (signal, critic)) in self
@@ -194,11 +199,13 @@ impl<C: CriticInput> SharedPpo<C> {
             |obs| self.policy.normalize(obs),
             c.gae_lambda,
             self.policy.device(),
+            phases,
         )?;
         drop(heads);
         if batch.len == 0 {
             return Err(AlgoError::EmptyBatch);
         }
+        let started = Instant::now();
         // The statistics stay fixed for the update: normalised once, not per minibatch.
         let obs = self.policy.normalize(&batch.obs);
         let objective = match c.objective {
@@ -238,6 +245,7 @@ impl<C: CriticInput> SharedPpo<C> {
             kl_anchor: start.filter(|_| self.kl_coef > 0.0),
             obs,
         };
+        phases.add("advantages, start policy", started.elapsed().as_secs_f64());
         Ok(Prepared {
             batch,
             rows,
@@ -264,8 +272,9 @@ impl<C: CriticInput> SharedPpo<C> {
         &mut self,
         mb: &Rows,
         objective: Objective,
+        phases: &mut Phases,
     ) -> Result<Option<Losses>, AlgoError> {
-        self.adam.zero_grad();
+        phases.time("zero gradients", || self.adam.zero_grad());
         let value_part = ValuePart {
             critics: self
                 .critics
@@ -289,22 +298,26 @@ impl<C: CriticInput> SharedPpo<C> {
                     tch::set_num_threads(1);
                     value_part.loss_and_gradients()
                 });
-                let policy = self.policy_loss_and_gradients(mb, objective);
+                let policy = self.policy_loss_and_gradients(mb, objective, phases);
+                let waited = Instant::now();
                 let value = value.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                phases.add("wait for the value part", waited.elapsed().as_secs_f64());
                 (policy, value)
             })
         } else {
             (
-                self.policy_loss_and_gradients(mb, objective),
+                self.policy_loss_and_gradients(mb, objective, phases),
                 value_part.loss_and_gradients(),
             )
         };
         let (policy, value) = (policy?, value?);
+        phases.merge(&value.phases);
         if !(policy.loss.is_finite() && value.total.is_finite()) {
             return Ok(None);
         }
-        let grad_norm = self.adam.clip_grad_norm(self.config.max_grad_norm);
-        self.adam.step();
+        let max_grad_norm = self.config.max_grad_norm;
+        let grad_norm = phases.time("gradient clip", || self.adam.clip_grad_norm(max_grad_norm));
+        phases.time("Adam step", || self.adam.step());
         Ok(Some(Losses {
             policy: policy.surrogate,
             value: value.first_head,
@@ -323,6 +336,7 @@ impl<C: CriticInput> SharedPpo<C> {
         &self,
         mb: &Rows,
         objective: Objective,
+        phases: &mut Phases,
     ) -> Result<PolicyTerms, AlgoError> {
         let c = &self.config;
         let standardized = |a: &Tensor| {
@@ -333,7 +347,8 @@ impl<C: CriticInput> SharedPpo<C> {
             }
         };
         // The network's pass: its gradients are taken by hand after the loss's (mlp.rs).
-        let pass = self.policy.forward_pass(&mb.obs);
+        let pass = phases.time("policy: network forward", || self.policy.forward_pass(&mb.obs));
+        let started = Instant::now();
         let (mean, log_std) = self.policy.head(&pass.output);
         let log_probs = gaussian_log_prob(&mean, &log_std, &mb.actions);
         let mut advantages = standardized(&mb.advantages);
@@ -360,9 +375,10 @@ impl<C: CriticInput> SharedPpo<C> {
             loss += kl * self.kl_coef;
         }
         let loss_value = f64::try_from(&loss)?;
+        phases.add("policy: loss", started.elapsed().as_secs_f64());
         if loss_value.is_finite() {
-            loss.backward();
-            pass.backward();
+            phases.time("policy: loss backward (autograd)", || loss.backward());
+            phases.time("policy: network backward", || pass.backward());
         }
         Ok(PolicyTerms {
             loss: loss_value,
@@ -513,11 +529,14 @@ struct ValuePart {
 impl ValuePart {
     /// The loss and, when it is finite, the critics' gradients of c_v times it.
     fn loss_and_gradients(self) -> Result<ValueTerms, tch::TchError> {
-        let passes: Vec<MlpPass> = self
-            .critics
-            .iter()
-            .map(|critic| critic.forward_pass(&self.inputs))
-            .collect();
+        let mut phases = Phases::default();
+        let passes: Vec<MlpPass> = phases.time("value: network forward", || {
+            self.critics
+                .iter()
+                .map(|critic| critic.forward_pass(&self.inputs))
+                .collect()
+        });
+        let started = Instant::now();
         let losses: Vec<Tensor> = passes
             .iter()
             .zip(&self.targets)
@@ -531,13 +550,19 @@ impl ValuePart {
         );
         let total = &losses[0] + other_heads;
         let total_value = f64::try_from(&total)?;
+        phases.add("value: loss", started.elapsed().as_secs_f64());
         if total_value.is_finite() {
-            (total * self.coef).backward();
-            passes.into_iter().for_each(MlpPass::backward);
+            phases.time("value: loss backward (autograd)", || {
+                (total * self.coef).backward()
+            });
+            phases.time("value: network backward", || {
+                passes.into_iter().for_each(MlpPass::backward)
+            });
         }
         Ok(ValueTerms {
             total: total_value,
             first_head: f64::try_from(&losses[0])?,
+            phases,
         })
     }
 }
@@ -559,6 +584,8 @@ struct ValueTerms {
     total: f64,
     /// The first head's (coordination's main signal): what progress lines report.
     first_head: f64,
+    /// Its time (on its own thread with `learner.split_update`, beside the policy's).
+    phases: Phases,
 }
 
 /// libtorch at one thread on this thread until dropped, then back to what it was.
@@ -661,27 +688,36 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
 
     /// The module documentation's outline, one line per stage.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
-        self.fold_observations(fragments)?;
-        let prepared = self.prepare(fragments)?;
-        let before = self.snapshot_for_coordination()?;
+        let mut phases = Phases::default();
+        phases.time("fold observations", || self.fold_observations(fragments))?;
+        let prepared = self.prepare(fragments, &mut phases)?;
+        let before = phases.time("snapshot for coordination", || {
+            self.snapshot_for_coordination()
+        })?;
         let mut rng =
             ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let mut losses = LossTotals::default();
-        let _one_thread_each = self.parallel.then(OneTorchThread::set);
+        let one_thread_each = self.parallel.then(OneTorchThread::set);
         for _ in 0..self.config.epochs {
-            let shuffled = prepared.rows.shuffled(&mut rng, prepared.batch.len);
+            let shuffled = phases.time("epoch shuffle", || {
+                prepared.rows.shuffled(&mut rng, prepared.batch.len)
+            });
             for minibatch in shuffled.minibatches(self.config.minibatch_size) {
-                match self.minibatch_step(&minibatch, prepared.objective)? {
+                match self.minibatch_step(&minibatch, prepared.objective, &mut phases)? {
                     Some(step) => losses.add(&step),
                     None => losses.skipped += 1,
                 }
             }
         }
+        drop(one_thread_each);
         let mut stats = losses.into_stats(&prepared.batch, self.adam.learning_rate());
         self.adapt_kl_coef(stats.kl);
         stats.kl_coef = self.kl_coef;
-        self.after_epochs(fragments, &prepared.batch, before, &mut rng, &mut stats)?;
+        phases.time("coordination, reports", || {
+            self.after_epochs(fragments, &prepared.batch, before, &mut rng, &mut stats)
+        })?;
         self.updates += 1;
+        stats.phases = phases;
         Ok(stats)
     }
 
@@ -846,6 +882,7 @@ pub(crate) mod testing {
             Tensor::shallow_clone,
             lambda,
             Device::Cpu,
+            &mut Phases::default(),
         )
         .unwrap()
     }
