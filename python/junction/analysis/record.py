@@ -9,8 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-from .runs import (OUTCOMES, SMOOTHING, RawRun, flatten, held_after_best, interpolate,
-                   process_starts, smoothed_scene_rate, variant_name)
+from .runs import (OUTCOMES, SMOOTHING, RawRun, approximately_smoothed, flatten,
+                   held_after_best, interpolate, process_starts, smoothed_scene_rate,
+                   variant_name)
 
 #: Spacing of the stored curves: agent-steps, and environment (scene) steps.
 AGENT_STEP_MARK = 250_000
@@ -22,15 +23,13 @@ LAG_LINES = 12
 
 # Columns of the agent-step curve: (name, digits kept).
 CURVE_COLUMNS = {
-    "env_steps": 0, "wall_s": 1,
-    "success": 4, "crash": 4, "out_of_road": 4, "timeout": 4,
-    "smoothed_success": 4, "smoothed_crash": 4, "smoothed_out_of_road": 4,
-    "smoothed_timeout": 4,
-    "best_success": 4,
-    "agent_success": 4, "mean_length": 1,
-    "entropy": 3, "approx_kl": 5, "clip_fraction": 4, "lag": 2, "phi_deg": 2,
+    "env_steps": 0, "wall_s": 0,
+    "success": 3, "crash": 3, "out_of_road": 3, "timeout": 3,
+    "smoothed_success": 3, "smoothed_crash": 3,
+    "best_success": 3,
+    "entropy": 3, "approx_kl": 4, "lag": 2, "phi_deg": 1,
 }
-ENV_CURVE_COLUMNS = {"agent_steps": 0, "success": 4, "smoothed_success": 4, "crash": 4}
+ENV_CURVE_COLUMNS = {"agent_steps": 0, "success": 3, "smoothed_success": 3}
 
 
 def _r(value, digits):
@@ -86,6 +85,14 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
     last = lines[-1]
     series = {o: _series(lines, clock, lambda l, o=o: _scene(l, o)) for o in OUTCOMES}
     smoothed = {o: smoothed_scene_rate(lines, SMOOTHING, o) for o in OUTCOMES}
+    window_size = run.config.get("run", {}).get("stats_window_scene_episodes", 20)
+    smoothing = "exact" if smoothed["success"] else None
+    env_smoothed = smoothed_scene_rate(lines, SMOOTHING, "success", key="env_steps")
+    if smoothing is None and any("env_steps" in l for l in lines):
+        # Written before scene_totals: CoPO's smoothing approximated from the windows.
+        smoothed["success"] = approximately_smoothed(lines, window_size)
+        env_smoothed = approximately_smoothed(lines, window_size, key="env_steps")
+        smoothing = "approximate" if smoothed["success"] else None
     best_from = _best_from(run)
     scene_success = [(x, v) for x, v in series["success"] if x >= best_from]
     running, best = [], None
@@ -98,11 +105,8 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
         **{o: series[o] for o in OUTCOMES},
         **{f"smoothed_{o}": smoothed[o] for o in OUTCOMES},
         "best_success": running,
-        "agent_success": _series(lines, clock, lambda l: _window(l, "success_rate")),
-        "mean_length": _series(lines, clock, lambda l: _window(l, "mean_length")),
         "entropy": _series(lines, clock, lambda l: _update(l, "entropy")),
         "approx_kl": _series(lines, clock, lambda l: _update(l, "approx_kl")),
-        "clip_fraction": _series(lines, clock, lambda l: _update(l, "clip_fraction")),
         "lag": _series(lines, clock, lambda l: _update(l, "lag_mean")),
         "phi_deg": _series(lines, clock, _phi),
     }
@@ -116,8 +120,7 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
     env_series = {
         "agent_steps": [(l["env_steps"], l["agent_steps"]) for l in lines if "env_steps" in l],
         "success": _series(lines, clock, lambda l: _scene(l, "success"), x="env_steps"),
-        "crash": _series(lines, clock, lambda l: _scene(l, "crash"), x="env_steps"),
-        "smoothed_success": smoothed_scene_rate(lines, SMOOTHING, "success", key="env_steps"),
+        "smoothed_success": env_smoothed,
     }
     env_end = last.get("env_steps", 0)
     env_xs = list(range(ENV_STEP_MARK, env_end + 1, ENV_STEP_MARK))
@@ -158,6 +161,7 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
         "budget": run.config.get("run", {}).get("max_agent_steps"),
         "unreadable_progress_lines": run.bad_lines,
         "processes": len(process_starts(run.lines)),
+        "smoothing": smoothing,
         "final": {
             "agent_steps": end,
             "env_steps": last.get("env_steps"),

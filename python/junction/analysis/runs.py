@@ -176,28 +176,32 @@ def variant_name(name: str) -> str:
     return match.group(1) if match else name
 
 
+_EVAL_NAME = re.compile(r"eval-(?P<scenario>.+)-seed(?P<seed>\d+)(?P<sample>-sample)?\.json")
+
+
 def read_eval(path: str | Path) -> dict:
     """One `actor eval` (or `metadrive_eval`) result, compacted: what it evaluated and every
-    metric as [value, low, high, n]."""
+    metric as [value, low, high] to 5 significant digits (the interval's n: `scene_episodes`
+    for the `scene_*` rates, `episodes` for the others). What the file leaves out is read from
+    its name (`eval-<scenario>-seed<S>[-sample].json`)."""
     path = Path(path)
     raw = json.loads(path.read_text())
-    if raw.get("format") != EVAL_FORMAT:
+    if raw.get("format", EVAL_FORMAT) != EVAL_FORMAT:
         raise ValueError(f"{path}: format {raw.get('format')!r}, not {EVAL_FORMAT}")
-    actions = raw.get("actions") or ("sample" if path.stem.endswith("-sample") else "mean")
+    named = _EVAL_NAME.fullmatch(path.name)
+    actions = raw.get("actions") or ("sample" if named and named["sample"] else "mean")
     metrics = {}
     for key, m in raw["metrics"].items():
         if m is None:
             continue
-        metrics[key] = [_round(m["value"]), _round(m.get("low")), _round(m.get("high")),
-                        m.get("n")]
+        metrics[key] = [_round(m["value"]), _round(m.get("low")), _round(m.get("high"))]
     training = raw.get("training") or {}
     return {
-        "file": path.name,
-        "scenario": raw["scenario"],
-        "seed": raw["seed"],
+        "scenario": raw.get("scenario") or (named and named["scenario"]),
+        "seed": raw.get("seed", int(named["seed"]) if named else None),
         "actions": actions,
         "after_horizon": raw.get("after_horizon"),
-        "episodes": raw["episodes"],
+        "episodes": raw.get("episodes"),
         "scene_episodes": raw.get("scene_episodes"),
         "scenes": raw.get("scenes"),
         "scene_steps": raw.get("scene_steps"),
@@ -242,3 +246,33 @@ class RawRun:
         self.seed = int(seed) if seed is not None else None
         self.clock = run_clock(self.lines)
         self.evals = read_evals(self.dir / "eval")
+
+
+def approximately_smoothed(lines: Sequence[dict], window: int = 20,
+                           episodes: int = SMOOTHING, key: str = "agent_steps"
+                           ) -> list[tuple[int, float]]:
+    """CoPO's smoothing approximated for runs written before `scene_totals`: at each line,
+    the mean of episodes / window full 20-scene-episode windows, `window` scene episodes
+    apart, the scene episodes counted as env_steps over the window's mean scene-episode
+    length (within a point of the exact share where both exist: results/metadrive-smoothing).
+    (line[key], success) per line that has them all."""
+    import bisect
+    lines = [l for l in lines if (l.get("scene_window") or {}).get("scene_episodes", 0) > 0]
+    counted, total, previous = [], 0.0, None
+    for line in lines:
+        w = line["scene_window"]
+        if previous is not None and w.get("mean_steps", 0) > 0:
+            total += (line["env_steps"] - previous["env_steps"]) / w["mean_steps"]
+        previous = line
+        counted.append(total)
+    out = []
+    for i, line in enumerate(lines):
+        picks = []
+        for k in range(episodes // window):
+            j = bisect.bisect_right(counted, counted[i] - k * window + 1e-9, 0, i + 1) - 1
+            if j < 0 or lines[j]["scene_window"]["scene_episodes"] < window:
+                break
+            picks.append(lines[j]["scene_window"]["success_rate"])
+        if len(picks) == episodes // window:
+            out.append((line[key], sum(picks) / len(picks)))
+    return out

@@ -106,7 +106,11 @@ def load(sources, training_only: bool = False) -> list[RunRecord]:
     for source in sources:
         path, globs = _split(source)
         if (path / "progress.jsonl").exists():
-            records = [RunRecord(record_from_run(RawRun(path), path.name), str(path.parent))]
+            # A run of a results folder's runs/ is named as the folder's summary names it.
+            inside = path.parent.name == "runs"
+            name = f"runs/{path.name}" if inside else path.name
+            records = [RunRecord(record_from_run(RawRun(path), name),
+                                 str(path.parent.parent if inside else path.parent))]
         elif path.is_dir() and run_dirs(path):
             base = flatten(read_config(run_dirs(path)[0] / "config.toml"))
             records = [RunRecord(record_from_run(RawRun(d), str(d.relative_to(path)), base),
