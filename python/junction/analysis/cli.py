@@ -26,8 +26,8 @@ from .figures import write_figures
 from .report import DEFAULT_MARKS, write_report
 from .summary import load, write_summary
 
-ONLY = ["runs", "summary", "paired", "marks", "env-marks", "reach", "lcf", "endings", "evals",
-        "table1"]
+ONLY = ["runs", "summary", "paired", "marks", "run-marks", "env-marks", "reach", "lcf",
+        "endings", "evals", "table1"]
 
 
 def _ints(text: str | None) -> list[int]:
@@ -42,6 +42,20 @@ def _common(p: argparse.ArgumentParser):
     p.add_argument("--methods", "--order", dest="order", default="",
                    help="group order, comma-separated")
     p.add_argument("--scenes", default="", help="keep these scenes, comma-separated")
+
+
+def arms_order(sources) -> list[str]:
+    """The arms of the sources' arms.tsv files, in their order (an ablation's table order)."""
+    order = []
+    for source in sources:
+        folder = Path(str(source).partition(":")[0])
+        folder = folder.parent if folder.is_file() else folder
+        for tsv in sorted(folder.glob("arms*.tsv")):
+            for line in tsv.read_text().splitlines():
+                name = line.split("\t")[0].strip()
+                if name and not name.startswith("#") and name not in order:
+                    order.append(name)
+    return order
 
 
 def _load(args):
@@ -98,6 +112,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     by = "arm" if getattr(args, "group_by_dir", False) else "method"
     order = [o for o in getattr(args, "order", "").split(",") if o]
+    if by == "arm" and not order:
+        order = arms_order(getattr(args, "sources", None) or getattr(args, "dirs", []))
 
     if args.command == "summarize":
         for d in args.dirs:
@@ -106,7 +122,7 @@ def main(argv=None):
             print(f"{d}/summary.json: {len(runs)} runs, "
                   f"{len(summary['runs']) - len(runs)} evaluation sets", file=sys.stderr)
             if not args.no_figures and runs:
-                for path in write_figures(load([d]), Path(d) / "figures", by):
+                for path in write_figures(load([d]), Path(d) / "figures", by, order):
                     print(f"  {path}", file=sys.stderr)
     elif args.command == "report":
         records = _load(args)
@@ -146,6 +162,9 @@ def tables_text(records, by, order, args) -> str:
     if "marks" in only and training:
         out.append("### Training success at agent-step marks\n\n" + tables.marks_table(
             training, marks, by, order))
+    if "run-marks" in only and training:
+        out.append("### Each run at agent-step marks\n\n" + tables.run_marks_table(
+            training, marks, by=by, order=order))
     if "env-marks" in only and training:
         out.append("### Training success at environment-step marks\n\n" + tables.env_marks_table(
             training, _ints(args.env_marks) or tables.ENV_MARKS, by, order))

@@ -25,6 +25,9 @@ FIGURES = [
      "MetaDrive's training success, smoothed over 100 scene episodes (CoPO's smoothing)",
      "success"),
     ("crash", "crash", "MetaDrive's training crash rate, last 20 scene episodes", "crash rate"),
+    ("success-agents", "agent_success",
+     "Training success per agent episode, last 200 agent episodes (runs written before "
+     "MetaDrive's per-scene-episode window)", "success"),
 ]
 
 

@@ -28,6 +28,7 @@ CURVE_COLUMNS = {
     "smoothed_success": 3, "smoothed_crash": 3,
     "best_success": 3,
     "entropy": 3, "approx_kl": 4, "lag": 2, "phi_deg": 1,
+    "agent_success": 3, "agent_crash": 3,
 }
 ENV_CURVE_COLUMNS = {"agent_steps": 0, "success": 3, "smoothed_success": 3}
 
@@ -110,11 +111,15 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
         "lag": _series(lines, clock, lambda l: _update(l, "lag_mean")),
         "phi_deg": _series(lines, clock, _phi),
     }
+    if not series["success"]:
+        # Written before MetaDrive's per-scene-episode window: the agent-episode window's.
+        curves["agent_success"] = _series(lines, clock, lambda l: _window(l, "success_rate"))
+        curves["agent_crash"] = _series(lines, clock, lambda l: _window(l, "crash_rate"))
     end = last["agent_steps"]
     xs = list(range(AGENT_STEP_MARK, end + 1, AGENT_STEP_MARK))
     curve = {"step": AGENT_STEP_MARK, "agent_steps": xs}
     for column, digits in CURVE_COLUMNS.items():
-        if curves[column]:
+        if curves.get(column):
             curve[column] = [_r(interpolate(curves[column], x), digits) for x in xs]
 
     env_series = {
@@ -129,15 +134,15 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
         if env_series[column]:
             env_curve[column] = [_r(interpolate(env_series[column], x), digits) for x in env_xs]
 
-    reach = []
+    # First reach per curve and threshold: [agent_steps, env_steps, wall_s].
+    reach = {}
+    by_x = {l["agent_steps"]: (l.get("env_steps"), t) for l, t in zip(lines, clock)}
     for curve_name, points in (("window", series["success"]), ("smoothed", smoothed["success"])):
-        by_x = {l["agent_steps"]: (l.get("env_steps"), t) for l, t in zip(lines, clock)}
         for threshold in THRESHOLDS:
             hit = next((x for x, v in points if v >= threshold), None)
             if hit is not None:
                 env, t = by_x[hit]
-                reach.append({"curve": curve_name, "threshold": threshold, "agent_steps": hit,
-                              "env_steps": env, "wall_s": round(t, 1)})
+                reach.setdefault(curve_name, {})[f"{threshold:g}"] = [hit, env, round(t, 1)]
 
     lags = [l["update"]["lag_mean"] for l in lines
             if (l.get("update") or {}).get("lag_mean") is not None]
@@ -150,7 +155,8 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
     update = last.get("update") or {}
     config = flatten(run.config)
     if base_config is not None:
-        config = {k: v for k, v in config.items() if base_config.get(k, _MISSING) != v}
+        config = {k: v for k, v in config.items() if base_config.get(k, _MISSING) != v
+                  and k not in NOISE_KEYS}
         config.update({k: None for k in base_config if k not in flatten(run.config)})
     record = {
         "name": name,
@@ -206,6 +212,8 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
 
 
 _MISSING = object()
+#: Config keys that differ between runs of one configuration (a shared-memory name).
+NOISE_KEYS = {"server.shm_name"}
 
 
 class RunRecord:
@@ -271,9 +279,12 @@ class RunRecord:
         return (self.data.get("held") or {}).get("smoothed" if smoothed else "window")
 
     def reach(self, threshold: float, smoothed: bool = False) -> dict | None:
-        curve = "smoothed" if smoothed else "window"
-        return next((r for r in self.data.get("reach", [])
-                     if r["curve"] == curve and abs(r["threshold"] - threshold) < 1e-9), None)
+        """Where the success curve (the 20-episode window, or smoothed) first reached
+        threshold: {agent_steps, env_steps, wall_s}; None if it never did (or the threshold
+        is not one of THRESHOLDS)."""
+        hit = (self.data.get("reach") or {}).get("smoothed" if smoothed else "window", {}).get(
+            f"{threshold:g}")
+        return None if hit is None else dict(zip(("agent_steps", "env_steps", "wall_s"), hit))
 
     # ---- curves at marks
     def curve(self, column: str) -> list[tuple[int, float]]:

@@ -311,6 +311,26 @@ def env_marks_table(records, marks=ENV_MARKS, by="method", order=(), skip=("cl",
     return text
 
 
+def run_marks_table(records, marks, columns=("success", "smoothed_success"), by="method",
+                    order=()) -> str:
+    """Each run's curve at the marks (a dash past its end), one row per run and column: the
+    curves one seed at a time, where the marks table averages seeds that all reached a mark."""
+    rows = []
+    for (scene, name), members in groups(records, by, order).items():
+        for r in members:
+            for column in columns:
+                values = [r.at(m, column) for m in marks]
+                if all(v is None for v in values):
+                    continue
+                where = r.experiment.rstrip("/").split("/")[-1] + "/" + r.name
+                smoothed = column.startswith("smoothed") and r.data.get("smoothing")
+                rows.append([scene, f"{label(name, by)}, seed {r.seed} ({where})",
+                             column.replace("_", " ") + (" ≈" if smoothed == "approximate"
+                                                          else ""),
+                             *("–" if v is None else f"{v:.2f}" for v in values)])
+    return markdown_table(["scene", "run", "curve", *(mark_label(m) for m in marks)], rows)
+
+
 def runs_table(records, eval_seed=None, by="method") -> str:
     """Every training run: MetaDrive's success / crash / timeout in the last window, smoothed
     success, best window, Held, and its evaluations' success / crash / timeout."""
