@@ -206,7 +206,9 @@ def read_eval(path: str | Path) -> dict:
         "scenes": raw.get("scenes"),
         "scene_steps": raw.get("scene_steps"),
         "policy_version": raw.get("policy_version"),
-        "agent_steps": training.get("agent_steps"),
+        # What was evaluated: learner.algo, scenario, run.seed and agent-steps of the run.
+        "trained": [training.get("algorithm"), training.get("scenario"), training.get("seed"),
+                    training.get("agent_steps")],
         "outcomes": raw.get("outcomes", {}),
         "endings": raw.get("endings", {}),
         "metrics": metrics,

@@ -95,6 +95,10 @@ def read_summary(path: str | Path) -> dict:
     return summary
 
 
+def _same(a: dict, b: dict) -> bool:
+    return all(a.get(k) == b.get(k) for k in ("scenario", "seed", "actions", "episodes"))
+
+
 def _split(source: str) -> tuple[Path, list[str]]:
     path, _, globs = str(source).partition(":")
     return Path(path), [g for g in globs.split(",") if g]
@@ -128,7 +132,23 @@ def load(sources, training_only: bool = False) -> list[RunRecord]:
             records = [r for r in records if any(fnmatch.fnmatch(r.name, g) for g in globs)]
             if not records:
                 raise ValueError(f"{source}: no run matches {globs}")
-        if training_only:
-            records = [r for r in records if r.is_training]
         out.extend(records)
+    attach_evaluations(out)
+    if training_only:
+        out = [r for r in out if r.is_training]
     return out
+
+
+def attach_evaluations(records: list[RunRecord]) -> None:
+    """Evaluations made outside a run's directory (an evaluation set: a checkpoint evaluated
+    again on another seed, say) join the training run they evaluated when it is among the
+    records: the same learner.algo, scenario, seed and agent-steps."""
+    runs = {(r.method, r.scene, r.seed, r.agent_steps): r for r in records if r.is_training}
+    for record in records:
+        if record.is_training:
+            continue
+        for e in record.evals:
+            trained = tuple(e.get("trained") or ())
+            run = runs.get(trained) if len(trained) == 4 else None
+            if run is not None and not any(_same(e, x) for x in run.evals):
+                run.evals = run.evals + [dict(e, evaluated_in=f"{record.experiment}/{record.name}")]
