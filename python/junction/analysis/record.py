@@ -334,7 +334,7 @@ class RunRecord:
         if key == "scene_timeout_rate":
             shares = [e["metrics"].get(f"scene_{k}_rate") for k in ("success", "crash",
                                                                      "out_of_road")]
-            return None if None in shares else 1.0 - sum(s[0] for s in shares)
+            return None if None in shares else max(0.0, round(1.0 - sum(s[0] for s in shares), 9))
         m = e["metrics"].get(key)
         return None if m is None else m[0]
 

@@ -176,13 +176,18 @@ def variant_name(name: str) -> str:
     return match.group(1) if match else name
 
 
+#: Metrics whose interval a summary keeps (the rates); the others keep their value alone.
+INTERVAL_METRICS = {"collision_rate", "scene_success_rate", "scene_crash_rate",
+                    "scene_out_of_road_rate", "success_rate", "crash_rate", "out_of_road_rate",
+                    "timeout_rate"}
 _EVAL_NAME = re.compile(r"eval-(?P<scenario>.+)-seed(?P<seed>\d+)(?P<sample>-sample)?\.json")
 
 
 def read_eval(path: str | Path) -> dict:
     """One `actor eval` (or `metadrive_eval`) result, compacted: what it evaluated and every
-    metric as [value, low, high] to 5 significant digits (the interval's n: `scene_episodes`
-    for the `scene_*` rates, `episodes` for the others). What the file leaves out is read from
+    metric to 5 significant digits, the rates of INTERVAL_METRICS as [value, low, high] (the
+    interval's n: `scene_episodes` for the `scene_*` rates, `episodes` for the others), the
+    rest as [value]. What the file leaves out is read from
     its name (`eval-<scenario>-seed<S>[-sample].json`)."""
     path = Path(path)
     raw = json.loads(path.read_text())
@@ -194,7 +199,8 @@ def read_eval(path: str | Path) -> dict:
     for key, m in raw["metrics"].items():
         if m is None:
             continue
-        metrics[key] = [_round(m["value"]), _round(m.get("low")), _round(m.get("high"))]
+        metrics[key] = ([_round(m["value"]), _round(m.get("low")), _round(m.get("high"))]
+                        if key in INTERVAL_METRICS else [_round(m["value"])])
     training = raw.get("training") or {}
     return {
         "scenario": raw.get("scenario") or (named and named["scenario"]),
@@ -210,7 +216,8 @@ def read_eval(path: str | Path) -> dict:
         "trained": [training.get("algorithm"), training.get("scenario"), training.get("seed"),
                     training.get("agent_steps")],
         "outcomes": raw.get("outcomes", {}),
-        "endings": raw.get("endings", {}),
+        # How agent episodes ended (outcome / route stage / what a crash hit): mean actions.
+        "endings": raw.get("endings", {}) if actions == "mean" else {},
         "metrics": metrics,
     }
 
