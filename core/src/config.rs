@@ -33,10 +33,14 @@ pub enum ConfigError {
     UnknownKey { key: String },
     #[error("invalid configuration: {0}")]
     Invalid(String),
+    #[error("unknown preset {name:?} (shipped presets: {known})")]
+    UnknownPreset { name: String, known: String },
 }
 
 /// One source of configuration, applied over the defaults in order.
 pub enum Layer<'a> {
+    /// A shipped preset by name (`presets/`): a run configuration's keys, as a file's.
+    Preset(&'a str),
     /// A run configuration file.
     File(&'a Path),
     /// A scenario (TOML of the `[scenario]` section's keys) replacing the scenario's keys.
@@ -689,6 +693,10 @@ impl RunConfig {
         let mut tree = parse_toml(DEFAULT_TOML, "defaults")?;
         for layer in layers {
             match layer {
+                Layer::Preset(name) => {
+                    let text = crate::presets::text(name)?;
+                    merge(&mut tree, parse_toml(text, &format!("preset {name}"))?, "")?;
+                }
                 Layer::File(path) => {
                     let text =
                         std::fs::read_to_string(path).map_err(|source| ConfigError::Read {

@@ -10,5 +10,6 @@ pub mod config;
 pub mod episode;
 pub mod evaluation;
 pub mod lcf_inputs;
+pub mod presets;
 pub mod scenarios;
 pub mod spec;

@@ -147,6 +147,11 @@ struct BenchArgs {
 
 #[derive(Args)]
 struct ConfigSource {
+    /// A shipped preset applied over the defaults, before everything else: gpu (one GPU
+    /// with many local actors). `learner config --preset NAME` prints it applied;
+    /// docs/CONFIGURATION.md says what each holds and why.
+    #[arg(long, value_name = "NAME")]
+    preset: Option<String>,
     /// Run configuration (TOML); only the keys to change are needed. Default: the built-in
     /// defaults (`learner config --defaults`), or the run's config.toml when resuming.
     #[arg(long, value_name = "FILE")]
@@ -164,15 +169,15 @@ struct ConfigSource {
 }
 
 impl ConfigSource {
-    /// Defaults ← `--config` (or `fallback`) ← `--scenario` ← `--set` ← `flags`.
+    /// Defaults ← `--preset` ← `--config` (or `fallback`) ← `--scenario` ← `--set` ← `flags`.
     fn load(&self, fallback: Option<&Path>, flags: &[String]) -> anyhow::Result<RunConfig> {
         let scenario = self.scenario.as_deref().map(scenarios::text).transpose()?;
         let layers: Vec<Layer> = self
-            .config
+            .preset
             .as_deref()
-            .or(fallback)
-            .map(Layer::File)
+            .map(Layer::Preset)
             .into_iter()
+            .chain(self.config.as_deref().or(fallback).map(Layer::File))
             .chain(scenario.as_deref().map(Layer::Scenario))
             .chain(self.overrides.iter().chain(flags).map(|o| Layer::Set(o)))
             .collect();
