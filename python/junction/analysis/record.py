@@ -194,8 +194,9 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
             "from_agent_steps": best_from,
         },
         "held": {
-            "window": _r(held_after_best([v for _, v in series["success"]]), 4),
-            "smoothed": _r(held_after_best([v for _, v in smoothed["success"]]), 4),
+            "window": _r(held_after_best([v for x, v in series["success"] if x >= best_from]), 4),
+            "smoothed": _r(held_after_best([v for x, v in smoothed["success"]
+                                            if x >= best_from]), 4),
         },
         "reach": reach,
         "lag": {

@@ -182,7 +182,11 @@ def summary_table(records, by="method", order=(), columns=SUMMARY_COLUMNS, eval_
     for (scene, name), members in groups(records, by, order).items():
         cells = []
         for _, key, digits in columns:
-            cell = fmt([measure(r, key, eval_seed) for r in members], digits)
+            values = [measure(r, key, eval_seed) for r in members]
+            cell = fmt(values, digits)
+            present = sum(v is not None for v in values)
+            if 0 < present < len(values):
+                cell += f" ({present} of {len(values)})"
             if key.startswith("smoothed") and any(r.data.get("smoothing") == "approximate"
                                                   for r in members) and cell != "–":
                 cell, approximate = "≈ " + cell, True
@@ -302,7 +306,8 @@ def env_marks_table(records, marks=ENV_MARKS, by="method", order=(), skip=("cl",
             points = reference.curve(scene, method)
             if points and any(m in points for m in marks):
                 cells = [f"*{points[m]:.2f}*" if m in points else "–" for m in marks]
-                rows.append([scene, f"*CoPO's {METHOD_LABEL[method]} on MetaDrive*", *cells])
+                name = "CoPO" if method == "copo" else "CoPO's IPPO"
+                rows.append([scene, f"*{name} on MetaDrive*", *cells])
     text = markdown_table(["scene", "method" if by == "method" else "arm",
                            *(f"{m // 1000}k env steps" for m in marks)], rows)
     if approximate:
