@@ -302,3 +302,20 @@ def test_the_command_line_tables_report_and_figures(tmp_path):
     summary = json.loads((tmp_path / "exp" / "summary.json").read_text())
     assert summary["format"] == "junction-summary/1" and not math.isnan(
         summary["runs"][0]["final"]["wall_s"])
+
+
+# ---------------------------------------------------------------- RESULTS.md
+
+def test_every_table_of_results_md_is_what_its_command_prints():
+    """Each table RESULTS.md prints below a `python -m junction.analysis` command is that
+    command's output from the summaries in results/ (results-md prints them all)."""
+    from junction.analysis import results_md
+    page = PYTHON.parent / "RESULTS.md"
+    found = results_md.commands(page.read_text())
+    assert len(found) >= 5, "RESULTS.md names the commands of its tables"
+    for command, argv, rows in found:
+        assert rows, f"no table follows {command}"
+        printed = results_md.run(argv).splitlines()
+        missing = [row for row in rows if row not in printed]
+        assert not missing, f"{command}\nprints other rows than RESULTS.md's:\n" + "\n".join(
+            missing[:5])

@@ -381,7 +381,8 @@ def evals_table(records) -> str:
         return "–" if m is None else f"{m[0]:.3f} [{m[1]:.3f}, {m[2]:.3f}]"
 
     for r in records:
-        for e in r.evals:
+        # An evaluation made elsewhere and attached to its run is listed where it was made.
+        for e in (e for e in r.evals if "evaluated_in" not in e):
             scene = e["metrics"].get("scene_success_rate")
             rows.append([r.experiment.rstrip("/").split("/")[-1] + "/" + r.name,
                          e["scenario"], e["seed"], e["actions"], e["episodes"],
