@@ -2,7 +2,7 @@
 """The tables of RESULTS.md's grid sections, from an experiment grid's runs.
 
     scripts/grid-tables.py results/grid-5m > tables.md
-    scripts/grid-tables.py results/grid-5m results/seeds456-5m/* 1000   # more seeds, one table
+    scripts/grid-tables.py results/grid-5m results/seeds456-5m/*-s? 1000   # more seeds, one table
     scripts/grid-tables.py --replace results/grid-5m results/dlcf-phi10-roundabout-5m/grid-s123.tsv
 
 Reads each OUT/grid.tsv (the runs `scripts/experiments.sh` finished; several OUTs are read as
