@@ -545,6 +545,16 @@ def _ev(r, actions, key, eval_seed):
     return r.eval_metric(key, eval_seed, actions)
 
 
+def _sw(r, outcome):
+    """The last progress line's scene-window rate as written (0 while its window is empty),
+    as the grid's tables always read it."""
+    return (r.final.get("scene_window") or {}).get(f"{outcome}_rate")
+
+
+def _f2(value):
+    return "–" if value is None else f"{value:.2f}"
+
+
 def _grid_runs(records, eval_seed):
     at = budget_label(records)
     lines = ["### Runs (MetaDrive's success / crash / timeout)\n",
@@ -555,7 +565,7 @@ def _grid_runs(records, eval_seed):
     for r in sorted(records, key=lambda r: (order.get(r.method, 99),
                                             scenes.index(r.scene) if r.scene in scenes else 99,
                                             r.seed)):
-        training = f"{r.last('success'):.2f} / {r.last('crash'):.2f} / {r.last('timeout'):.2f}"
+        training = f"{_f2(_sw(r, 'success'))} / {_f2(_sw(r, 'crash'))} / {_f2(_sw(r, 'timeout'))}"
         if r.method in ("copo", "dynamic-lcf") and r.phi is not None:
             training += f" ({'μ' if r.method == 'copo' else 'φ'} {r.phi:.0f}°)"
         evaluated = []
@@ -585,10 +595,10 @@ def _grid_table1(records, scene, seed):
         if not rs:
             lines.append(f"| {METHOD_LABEL[method]} | 0 | not run yet |" + " |" * 10)
             continue
-        env_k = sum(r.env_steps for r in rs) / len(rs) / 1000
+        env_k = sum(r.env_steps or 0 for r in rs) / len(rs) / 1000
         cells = [
-            fmt([r.last("success") for r in rs]), fmt([r.best for r in rs]),
-            fmt([r.last("crash") for r in rs]),
+            fmt([_sw(r, "success") for r in rs]), fmt([r.best for r in rs]),
+            fmt([_sw(r, "crash") for r in rs]),
             fmt([_ev(r, "mean", "scene_success_rate", seed) for r in rs]),
             fmt([_ev(r, "mean", "scene_crash_rate", seed) for r in rs]),
             fmt([_ev(r, "mean", "scene_timeout_rate", seed) for r in rs]),
@@ -616,7 +626,7 @@ def _grid_paired(records, scenes, eval_seed):
              "| scene | method − ippo | n | training success | training crash | unseen mean "
              "success | crash | unseen sampled success | crash |", "|" + "---|" * 9]
     getters: list[Callable] = [
-        lambda r: r.last("success"), lambda r: r.last("crash"),
+        lambda r: _sw(r, "success"), lambda r: _sw(r, "crash"),
         lambda r: _ev(r, "mean", "scene_success_rate", eval_seed),
         lambda r: _ev(r, "mean", "scene_crash_rate", eval_seed),
         lambda r: _ev(r, "sample", "scene_success_rate", eval_seed),
