@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # An ablation: variants ("arms") of one training set-up, each trained for BUDGET agent-steps
-# with every seed in the local mode, its final checkpoint evaluated, then `learner report
-# --group-by-dir` (one column per arm) into OUT/report.
+# with every seed in the local mode, its final checkpoint evaluated, then `python -m
+# junction.analysis report --group-by-dir` (one column per arm) into OUT/report.
 #
 #   ARMS=results/ablation-5m/arms.tsv OUT=results/ablation-5m scripts/ablation.sh
 #
@@ -127,7 +127,9 @@ if [ "$interrupted" = 1 ]; then
     exit 130
 fi
 say "report"
-"$BIN/learner" report --group-by-dir --methods "$(IFS=,; echo "${names[*]}")" \
-    --eval-seeds "$EVAL_SEED" --out "$OUT/report" "$OUT/runs"
+# The analysis module is standard-library Python: the system python3 runs it from python/.
+PYTHONPATH=python python3 -m junction.analysis report --group-by-dir \
+    --methods "$(IFS=,; echo "${names[*]}")" --eval-seeds "$EVAL_SEED" \
+    --out "$OUT/report" "$OUT/runs"
 exit
 }

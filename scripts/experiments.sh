@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The experiment grid of issue #7 (paper §4): every method × scene × seed trained to an
 # agent-step budget (the local mode: learner + actors over shared memory), each final
-# checkpoint evaluated with `actor eval`, then `learner report` and OUT/RESULTS.md.
+# checkpoint evaluated with `actor eval`, then `python -m junction.analysis report` and
+# OUT/RESULTS.md.
 #
 #   make experiments BUDGET=200000                      # or: scripts/experiments.sh
 #   BUDGET=2000000 SEEDS="1 2 3" METHODS="ippo copo" SCENES="intersection" scripts/experiments.sh
@@ -215,7 +216,8 @@ trap - INT TERM
 wall=$(($(date +%s) - started))
 report_status=0
 if [ "${#good_runs[@]}" -gt 0 ]; then
-    "$BIN/learner" report "${good_runs[@]}" --out "$OUT/report" \
+    # The analysis module is standard-library Python: the system python3 runs it from python/.
+    PYTHONPATH=python python3 -m junction.analysis report "${good_runs[@]}" --out "$OUT/report" \
         --methods "$(tr ' ' ',' <<<"$METHODS")" \
         --scenes "$(for s in $SCENES; do basename "$s" .toml; done | paste -sd,)" \
         --success-threshold "$SUCCESS" --eval-seeds "$EVAL_SEED" || report_status=$?
@@ -264,7 +266,7 @@ fi
         tail -n +2 "$OUT/report/report.md" | sed -e 's/^## /### /' -e 's/^# /## /' \
             -e 's#](figures/#](report/figures/#g'
     else
-        echo "No report: \`learner report\` failed or had no finished run (exit $report_status)."
+        echo "No report: \`python -m junction.analysis report\` failed or had no finished run (exit $report_status)."
     fi
 } >"$OUT/RESULTS.md"
 

@@ -32,8 +32,9 @@
 #   BIN             directory of the learner and actor binaries [target/release]
 #
 # Writes OUT/REPORT.md (curve points at the marks, the 2 × 2 table with 95 % intervals, the
-# commands), OUT/report/ (`learner report` over the runs), OUT/runs/ippo-s<seed>/ (each run's
-# learner.log, actor-<k>.log, progress.jsonl, checkpoints) and OUT/eval/<cell>/ (eval JSON/CSV).
+# commands), OUT/report/ (`python -m junction.analysis report` over the runs),
+# OUT/runs/ippo-s<seed>/ (each run's learner.log, actor-<k>.log, progress.jsonl, checkpoints)
+# and OUT/eval/<cell>/ (eval JSON/CSV).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
@@ -172,8 +173,10 @@ if [ -n "$JUNCTION_CHECKPOINT" ]; then
     evaluate "junction-in-junction" "$JUNCTION_CHECKPOINT" junction
 fi
 
-"$BIN/learner" report "$OUT/runs" --out "$OUT/report" --marks "$MARKS" >"$OUT/report.log" 2>&1 \
-    || say "learner report failed (see $OUT/report.log)"
+# The analysis module is standard-library Python: the system python3 runs it from python/.
+PYTHONPATH=python python3 -m junction.analysis report "$OUT/runs" --out "$OUT/report" \
+    --marks "$MARKS" >"$OUT/report.log" 2>&1 \
+    || say "the report failed (see $OUT/report.log)"
 
 "$PY" - "$OUT" "$BUDGET" "$MARKS" "$SEEDS" "$JUNCTION_CHECKPOINT" "$JUNCTION_EVAL" \
     "$SCENARIO" "$EVAL_EPISODES" "$EVAL_SEED" "$(( $(date +%s) - STARTED ))" <<'EOF'
@@ -259,7 +262,8 @@ for label, prefix in rows:
         md.append(f"| {label} | {'Junction' if where == 'junction' else 'MetaDrive'} | "
                   f"{r['episodes']} | {fmt(m['success_rate'])} | {fmt(m['crash_rate'])} | "
                   f"{fmt(m['out_of_road_rate'])} | {fmt(m.get('scene_success_rate'))} |")
-md += ["", "`learner report` over the runs: [report/report.md](report/report.md).", ""]
+md += ["", "`python -m junction.analysis report` over the runs: "
+          "[report/report.md](report/report.md).", ""]
 (out / "REPORT.md").write_text("\n".join(md))
 print("\n".join(md))
 EOF

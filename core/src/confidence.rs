@@ -1,5 +1,6 @@
-//! 95 % confidence intervals, for `actor eval` (over the episodes of one evaluation) and for
-//! `learner report` (over the seeds of one method and scene).
+//! 95 % confidence intervals for `actor eval` (over the episodes of one evaluation). The
+//! intervals over seeds of one method and scene are `python -m junction.analysis`'s
+//! (python/junction/analysis/stats.py), with the same exact t quantiles.
 //!
 //! Each kind of statistic gets the interval that behaves well where ours live:
 //! - shares of episodes (success, crash, …): Wilson's score interval, which stays inside

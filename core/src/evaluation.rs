@@ -1,6 +1,6 @@
 //! The driving metrics of an evaluation (paper §4.2 and CoPO's), each with a 95 % interval,
-//! and the `actor eval` result file that `learner report` reads back: one definition for the
-//! producer and the consumer.
+//! and the `actor eval` result file that `python -m junction.analysis` reads back: one
+//! definition for the producer, and the reference for its reader.
 
 use std::collections::BTreeMap;
 

@@ -1,5 +1,6 @@
 //! Junction's learner: ingest of rollout fragments, the learning algorithms, the optimiser,
-//! checkpoints, weight broadcast, the metrics endpoint, and offline reports of finished runs.
+//! checkpoints, weight broadcast and the metrics endpoint. Finished runs are reported offline
+//! by the Python analysis module (`python -m junction.analysis report`), not here.
 
 pub mod algo;
 pub mod bench;
@@ -9,7 +10,6 @@ pub mod local;
 pub mod metrics;
 pub mod optim;
 pub mod progress;
-pub mod report;
 pub mod security;
 pub mod server;
 pub mod shm;

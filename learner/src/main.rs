@@ -26,7 +26,6 @@ use junction_learner::checkpoint::Checkpointer;
 use junction_learner::ingest::Ingest;
 use junction_learner::local::{ActorCommand, LocalActors};
 use junction_learner::metrics::LearnerMetrics;
-use junction_learner::report::{self, ReportOptions};
 use junction_learner::security::{self, TokenCheck};
 use junction_learner::server::{LearnerService, Shared};
 use junction_learner::shm::ShmServer;
@@ -59,62 +58,10 @@ enum Command {
     /// agents × rollout.fragment_length, ppo.train_batch_env_steps per update, or
     /// dqn.train_batch_env_steps for dqn) and print one JSON line with samples_per_s.
     Bench(BenchArgs),
-    /// Report finished runs offline: a Markdown table like the paper's Table 1 per scene
-    /// (methods as columns, mean ± 95 % CI over seeds, from `actor eval` results in
-    /// <run>/eval/ when every seed has one, else from the last training window), the time to
-    /// reach a success rate, and PNG + SVG figures of the training curves (scenes side by
-    /// side, methods overlaid, range over seeds shaded). Writes OUT/report.md,
-    /// OUT/summary.json and OUT/figures/.
-    Report(ReportArgs),
     /// Time fragment throughput of each transport on this host through the learner's real
     /// receiving side (decode, validation, ingest queue), with fragments of the run's shape
     /// (30 agents × 200 steps × 91 observations by default); one JSON line per transport.
     BenchTransport(BenchTransportArgs),
-}
-
-#[derive(Args)]
-struct ReportArgs {
-    /// Run directories (each holding progress.jsonl and config.toml), or directories whose
-    /// subdirectories are runs.
-    #[arg(required = true, value_name = "RUN_DIR")]
-    runs: Vec<PathBuf>,
-    /// Output directory.
-    #[arg(long, value_name = "DIR")]
-    out: PathBuf,
-    /// Column order of the methods (learner.algo), comma-separated; others found follow.
-    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
-    methods: Vec<String>,
-    /// Order of the scenes (scenario.name), comma-separated; others found follow.
-    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
-    scenes: Vec<String>,
-    /// Success rate of the time-to-success table.
-    #[arg(long, default_value_t = 0.8)]
-    success_threshold: f64,
-    /// Episodes a training window needs before its success rate counts as reached.
-    #[arg(long, default_value_t = 100)]
-    min_window_episodes: usize,
-    /// Group runs by their directory's name without its "-s<seed>" suffix instead of by
-    /// learner.algo: variants of one algorithm (an ablation's arms) become the columns.
-    #[arg(long)]
-    group_by_dir: bool,
-    /// Agent-step counts at which the table of training success (MetaDrive's definition)
-    /// reads each run's curve, comma-separated.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        value_name = "AGENT_STEPS",
-        default_value = "1000000,2500000,5000000,7500000,10000000,15000000"
-    )]
-    marks: Vec<u64>,
-    /// Scene episodes the smoothed row of that table averages over (from progress lines'
-    /// scene_totals): CoPO smoothed its curves over 100 environment episodes.
-    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..))]
-    smoothing_scene_episodes: u64,
-    /// Evaluation seeds (`actor eval --seed`) whose results count, comma-separated; by
-    /// default every one found in a run's eval/, averaged per run. A group whose runs do not
-    /// all have one of these falls back to its training windows.
-    #[arg(long, value_delimiter = ',', value_name = "SEEDS")]
-    eval_seeds: Vec<u64>,
 }
 
 #[derive(Args)]
@@ -254,27 +201,6 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Bench(args) => bench(args),
-        Command::Report(args) => {
-            let options = ReportOptions {
-                methods: args.methods,
-                scenes: args.scenes,
-                success_threshold: args.success_threshold,
-                min_window_episodes: args.min_window_episodes,
-                group_by_dir: args.group_by_dir,
-                marks: args.marks,
-                smoothing_scene_episodes: args.smoothing_scene_episodes,
-                eval_seeds: args.eval_seeds,
-                ..ReportOptions::default()
-            };
-            let summary = report::run(&args.runs, &args.out, &options)?;
-            println!(
-                "report: {} runs, {} skipped → {}",
-                summary.runs.len(),
-                summary.skipped.len(),
-                args.out.join("report.md").display()
-            );
-            Ok(())
-        }
         Command::BenchTransport(args) => bench_transport(args),
         Command::Serve(args) => {
             let runtime = tokio::runtime::Builder::new_multi_thread()

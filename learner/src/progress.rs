@@ -1,6 +1,6 @@
 //! `<run-dir>/progress.jsonl`: one JSON object per line, appended every
 //! `run.progress_interval_s` and once when training stops, so a finished run can be plotted
-//! offline (`learner report`) without Prometheus.
+//! offline (`python -m junction.analysis report`) without Prometheus.
 //!
 //! | key | meaning |
 //! |---|---|
@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::stats::{SceneTotals, SceneWindowSummary, WindowSummary};
 
-/// One line of `progress.jsonl` (written by the trainer, read by `learner report`).
+/// One line of `progress.jsonl` (written by the trainer, read by `python -m junction.analysis`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct ProgressLine {

@@ -23,7 +23,7 @@ struct FragmentTally {
 
 /// Aggregates of the episodes in the window; rates are shares of episodes. Serialised as the
 /// `window` object of every `progress.jsonl` line: add fields, never rename them (readers
-/// such as `learner report` and the learning tests read them by name).
+/// such as `python -m junction.analysis` and the learning tests read them by name).
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default)]
 pub struct WindowSummary {

@@ -76,7 +76,8 @@ def totals(steps, elapsed, episodes, success, **extra):
 
 
 def test_smoothing_takes_the_newest_whole_lines_that_hold_enough_episodes():
-    # learner/src/report/aggregate.rs's case: two resumes, the second told apart by its clock.
+    # The Rust report's case (learner/src/report/aggregate.rs, since removed): two resumes,
+    # the second told apart by its clock.
     lines = [totals(10, 1, 4, 1.0), totals(20, 2, 10, 4.0), totals(30, 3, 12, 6.0),
              totals(40, 4, 16, 10.0), totals(50, 1, 3, 3.0), totals(60, 2, 11, 3.0),
              totals(70, 1, 14, 7.0)]
@@ -293,7 +294,10 @@ def test_the_command_line_tables_report_and_figures(tmp_path):
     report = (tmp_path / "report" / "report.md").read_text()
     assert "## Table 1 — intersection" in report and "Success rate (MetaDrive)" in report
     figures = sorted((tmp_path / "report" / "figures").glob("*.svg"))
-    assert {f.stem for f in figures} == {"crash", "success", "success-smoothed"}
+    # The stored curves' figures, and from the run directories one per training-window
+    # metric they log (success.svg and crash.svg already show MetaDrive's window).
+    assert {f.stem for f in figures} == {"crash", "success", "success-smoothed",
+                                         "success_rate", "length_mean"}
     for f in figures:
         root = ET.fromstring(f.read_text())  # well-formed SVG
         assert root.tag.endswith("svg") and len(f.read_bytes()) < 30_000

@@ -139,14 +139,14 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
         "| ippo | tiny-straight | 4 | ok |",
         "### Table 1 — tiny-straight",
         "| Source | eval (seed 1000) |",
-        "](report/figures/success_rate.png)",
+        "](report/figures/success_rate.svg)",
     ] {
         assert!(
             results.contains(text),
             "RESULTS.md lacks {text:?}:\n{results}"
         );
     }
-    assert!(out.join("report/figures/success_rate.png").is_file());
+    assert!(out.join("report/figures/success_rate.svg").is_file());
 
     // Again with RESUME=1: the finished run is kept, not trained again.
     let log = grid(&out, dir.path(), "resume", "4", true);

@@ -12,7 +12,7 @@ the standard library (`sys.path` holding `python/` is enough).
   `paired_difference` (an arm minus a baseline of the same seed), `wilson`.
 - Runs as kept: `record_from_run` / `RunRecord`, a results folder's `summary.json`
   (`summarize`, `write_summary`, `load`); tables (`junction.analysis.tables`), SVG figures
-  (`junction.analysis.figures`), `learner report`'s report (`write_report`).
+  (`junction.analysis.figures`), an experiment's report (`junction.analysis.report`).
 - CoPO's reference curves and table: `junction.analysis.reference` (`copo_reference.json`).
 - The command line: `python -m junction.analysis --help`.
 """

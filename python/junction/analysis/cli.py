@@ -2,7 +2,9 @@
 
   summarize DIR...            raw run directories of each results folder -> DIR/summary.json,
                               DIR/config.toml and DIR/figures/*.svg (before the raw files go)
-  report SOURCE... --out DIR  what `learner report` wrote: report.md, summary.json, figures/
+  report SOURCE... --out DIR  an experiment's report: report.md (Table 1 per scene, time to
+                              success, marks, endings), summary.json and figures/*.svg; a
+                              run directory that cannot be read is named and left out
   tables SOURCE...            the tables over seeds (every run, the summary per group, each
                               group minus a baseline of the same seed, marks, time to success,
                               LCF angle, endings, evaluations); --only picks some
@@ -23,7 +25,8 @@ from pathlib import Path
 
 from . import tables
 from .figures import write_figures
-from .report import DEFAULT_MARKS, write_report
+from .record import MIN_WINDOW_EPISODES
+from .report import DEFAULT_MARKS, DEFAULT_THRESHOLDS, write_report
 from .summary import load, write_summary
 
 ONLY = ["runs", "summary", "paired", "marks", "run-marks", "env-marks", "reach", "lcf",
@@ -58,8 +61,12 @@ def arms_order(sources) -> list[str]:
     return order
 
 
-def _load(args):
-    records = load(args.sources)
+def _floats(text: str | None) -> list[float]:
+    return [float(x) for x in text.split(",") if x] if text else []
+
+
+def _load(args, skipped: list | None = None):
+    records = load(args.sources, skipped=skipped)
     if args.scenes:
         keep = args.scenes.split(",")
         records = [r for r in records if not r.is_training or r.scene in keep]
@@ -81,8 +88,20 @@ def main(argv=None):
     p = sub.add_parser("report", help="report.md, summary.json and figures/*.svg")
     _common(p)
     p.add_argument("--out", required=True)
-    p.add_argument("--eval-seeds", default="", help="evaluation seeds to count")
+    p.add_argument("--eval-seeds", default="",
+                   help="evaluation seeds (`actor eval --seed`) whose results count, "
+                        "comma-separated (default every one found, averaged per run); a group "
+                        "whose runs do not all have one falls back to its training windows")
     p.add_argument("--marks", default="", help="agent-step marks (default 1M,2.5M,5M,…)")
+    p.add_argument("--success-threshold", default="",
+                   help="training success rate(s) of the time-to-success table, "
+                        "comma-separated (default "
+                        f"{','.join(f'{t:g}' for t in DEFAULT_THRESHOLDS)}; from summaries "
+                        "only 0.5, 0.6, 0.7 and 0.8)")
+    p.add_argument("--min-window-episodes", type=int, default=MIN_WINDOW_EPISODES,
+                   help="agent episodes the training window needs before its success counts "
+                        "as reached, for runs written before MetaDrive's per-scene-episode "
+                        f"window (default {MIN_WINDOW_EPISODES}; from summaries only that)")
 
     p = sub.add_parser("tables", help="the tables over seeds, in Markdown")
     _common(p)
@@ -125,10 +144,25 @@ def main(argv=None):
                 for path in write_figures(load([d]), Path(d) / "figures", by, order):
                     print(f"  {path}", file=sys.stderr)
     elif args.command == "report":
-        records = _load(args)
+        skipped: list = []
+        records = _load(args, skipped)
+        for s in skipped:
+            print(f"left out {s['dir']}: {s['reason']}", file=sys.stderr)
+        training = [r for r in records if r.is_training]
+        if not training:
+            parser.error(f"no readable training run among {args.sources}")
+        thresholds = _floats(args.success_threshold) or DEFAULT_THRESHOLDS
+        unkept = [r for r in training for t in thresholds
+                  if not r.reaches_kept(t, args.min_window_episodes)]
+        if unkept:
+            parser.error(f"{unkept[0]} comes from a summary, which keeps first reaches at "
+                         f"0.5, 0.6, 0.7 and 0.8 with --min-window-episodes "
+                         f"{MIN_WINDOW_EPISODES} only")
         path = write_report(records, args.out, by, order, _ints(args.eval_seeds),
-                            _ints(args.marks) or DEFAULT_MARKS)
-        print(path, file=sys.stderr)
+                            _ints(args.marks) or DEFAULT_MARKS, thresholds,
+                            args.min_window_episodes, skipped)
+        print(f"report: {len(training)} runs, {len(skipped)} left out -> {path}",
+              file=sys.stderr)
     elif args.command == "tables":
         print(tables_text(_load(args), by, order, args), end="")
     elif args.command == "grid":

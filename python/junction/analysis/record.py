@@ -20,6 +20,25 @@ ENV_STEP_MARK = 25_000
 THRESHOLDS = (0.5, 0.6, 0.7, 0.8)
 #: Progress lines (5 s apart by default) whose updates' lag `lag.final` averages.
 LAG_LINES = 12
+#: Agent episodes the training window needs before its success counts as reached, for runs
+#: written before MetaDrive's per-scene-episode window (whose first reaches read the
+#: agent-episode window instead).
+MIN_WINDOW_EPISODES = 100
+
+#: The last training window's value of an evaluation metric (`core/src/evaluation.rs`'s
+#: keys): the agent-episode window's key (None: training does not track it); the `scene_*`
+#: rates read MetaDrive's per-scene-episode window.
+WINDOW_KEYS = {
+    "collision_rate": "collisions_per_s", "success_rate": "success_rate",
+    "crash_rate": "crash_rate", "out_of_road_rate": "out_of_road_rate",
+    "timeout_rate": "timeout_rate", "accel_mean": "mean_accel", "accel_max": "mean_max_accel",
+    "reward_mean": "mean_reward", "reward_max": "max_reward", "length_mean": "mean_length",
+    "length_max": "max_length",
+}
+# The stored curve column of a training-window metric, for records read from a summary.
+_STORED_COLUMNS = {"scene_success_rate": "success", "scene_crash_rate": "crash",
+                   "scene_out_of_road_rate": "out_of_road", "success_rate": "agent_success",
+                   "crash_rate": "agent_crash"}
 
 # Columns of the agent-step curve: (name, digits kept).
 CURVE_COLUMNS = {
@@ -69,6 +88,43 @@ def _update(line, key):
 
 def _phi(line):
     return (line.get("lcf") or {}).get("mean_deg")
+
+
+def window_value(line: dict, key: str) -> float | None:
+    """A progress line's training-window value of an evaluation metric (WINDOW_KEYS), None
+    while its window is empty or for a metric training does not track."""
+    if key.startswith("scene_"):
+        return _scene(line, key[len("scene_"):-len("_rate")])
+    window_key = WINDOW_KEYS.get(key)
+    return None if window_key is None else _window(line, window_key)
+
+
+def window_curve(lines: Sequence[dict], key: str) -> list[tuple[int, float]]:
+    """(agent-steps, value) of a training-window metric along a run, from the lines whose
+    window holds at least one episode."""
+    return [(l["agent_steps"], v) for l in lines if (v := window_value(l, key)) is not None]
+
+
+def agent_window_success(lines: Sequence[dict],
+                         min_episodes: int = MIN_WINDOW_EPISODES) -> list[tuple[int, float]]:
+    """(agent-steps, success) of the agent-episode window at the lines whose window holds at
+    least `min_episodes` episodes."""
+    return [(l["agent_steps"], (l.get("window") or {}).get("success_rate", 0.0))
+            for l in lines if (l.get("window") or {}).get("episodes", 0) >= min_episodes]
+
+
+def first_reaches(points: Sequence[tuple[int, float]], lines: Sequence[dict],
+                  clock: Sequence[float], thresholds: Sequence[float]) -> dict:
+    """{threshold: [agent_steps, env_steps, wall_s]} of the first point of a success curve
+    (agent-steps, value) at or above each threshold that one reaches."""
+    by_x = {l["agent_steps"]: (l.get("env_steps"), t) for l, t in zip(lines, clock)}
+    out = {}
+    for threshold in thresholds:
+        hit = next((x for x, v in points if v >= threshold), None)
+        if hit is not None:
+            env, t = by_x[hit]
+            out[f"{threshold:g}"] = [hit, env, round(t, 1)]
+    return out
 
 
 def _best_from(run: RawRun) -> float:
@@ -134,15 +190,16 @@ def record_from_run(run: RawRun, name: str, base_config: dict | None = None) -> 
         if env_series[column]:
             env_curve[column] = [_r(interpolate(env_series[column], x), digits) for x in env_xs]
 
-    # First reach per curve and threshold: [agent_steps, env_steps, wall_s].
+    # First reach per curve and threshold: [agent_steps, env_steps, wall_s]; runs written
+    # before MetaDrive's window: the agent-episode window's (of MIN_WINDOW_EPISODES or more).
     reach = {}
-    by_x = {l["agent_steps"]: (l.get("env_steps"), t) for l, t in zip(lines, clock)}
-    for curve_name, points in (("window", series["success"]), ("smoothed", smoothed["success"])):
-        for threshold in THRESHOLDS:
-            hit = next((x for x, v in points if v >= threshold), None)
-            if hit is not None:
-                env, t = by_x[hit]
-                reach.setdefault(curve_name, {})[f"{threshold:g}"] = [hit, env, round(t, 1)]
+    curves_reached = [("window", series["success"]), ("smoothed", smoothed["success"])]
+    if not series["success"]:
+        curves_reached.append(("agent_window", agent_window_success(lines)))
+    for curve_name, points in curves_reached:
+        hits = first_reaches(points, lines, clock, THRESHOLDS)
+        if hits:
+            reach[curve_name] = hits
 
     lags = [l["update"]["lag_mean"] for l in lines
             if (l.get("update") or {}).get("lag_mean") is not None]
@@ -220,9 +277,12 @@ NOISE_KEYS = {"server.shm_name"}
 class RunRecord:
     """Read access to one run's summary entry (a dict as `record_from_run` makes it)."""
 
-    def __init__(self, data: dict, experiment: str = ""):
+    def __init__(self, data: dict, experiment: str = "", raw: RawRun | None = None):
         self.data = data
         self.experiment = experiment
+        #: The run directory as read (its every progress line) when the record was made from
+        #: one rather than read from a summary: figures and first reaches at any threshold.
+        self.raw = raw
         self.name = data["name"]
         self.method = data.get("method")
         self.arm = data.get("arm") or self.method
@@ -279,13 +339,44 @@ class RunRecord:
     def held(self, smoothed: bool = False) -> float | None:
         return (self.data.get("held") or {}).get("smoothed" if smoothed else "window")
 
-    def reach(self, threshold: float, smoothed: bool = False) -> dict | None:
-        """Where the success curve (the 20-episode window, or smoothed) first reached
-        threshold: {agent_steps, env_steps, wall_s}; None if it never did (or the threshold
-        is not one of THRESHOLDS)."""
-        hit = (self.data.get("reach") or {}).get("smoothed" if smoothed else "window", {}).get(
-            f"{threshold:g}")
+    def reach(self, threshold: float, smoothed: bool = False,
+              min_episodes: int = MIN_WINDOW_EPISODES) -> dict | None:
+        """Where the success curve (MetaDrive's 20-scene-episode window, or smoothed over 100;
+        a run written before that window: the agent-episode window once it holds
+        `min_episodes`) first reached threshold: {agent_steps, env_steps, wall_s}; None if it
+        never did. From a summary only THRESHOLDS at MIN_WINDOW_EPISODES are kept (None for
+        others: see `reaches_kept`); from a run directory any."""
+        if self.raw is not None:
+            lines, clock = self.raw.lines, self.raw.clock
+            if smoothed:
+                points = smoothed_scene_rate(lines, SMOOTHING, "success")
+            else:
+                points = (_series(lines, clock, lambda l: _scene(l, "success"))
+                          or agent_window_success(lines, min_episodes))
+            hit = first_reaches(points, lines, clock, [threshold]).get(f"{threshold:g}")
+        else:
+            kept = self.data.get("reach") or {}
+            curve = (kept.get("smoothed", {}) if smoothed
+                     else kept.get("window") or kept.get("agent_window", {}))
+            hit = curve.get(f"{threshold:g}") if min_episodes == MIN_WINDOW_EPISODES else None
         return None if hit is None else dict(zip(("agent_steps", "env_steps", "wall_s"), hit))
+
+    def reaches_kept(self, threshold: float, min_episodes: int = MIN_WINDOW_EPISODES) -> bool:
+        """Whether `reach` can answer for this threshold and window size: always from a run
+        directory, for THRESHOLDS at MIN_WINDOW_EPISODES from a summary."""
+        return self.raw is not None or (
+            min_episodes == MIN_WINDOW_EPISODES and any(abs(threshold - t) < 1e-12
+                                                        for t in THRESHOLDS))
+
+    def window_curve(self, key: str) -> list[tuple[int, float]]:
+        """(agent-steps, value) of a training-window metric (an evaluation metric's key, see
+        WINDOW_KEYS) along the run: every progress line with episodes in its window when the
+        record was made from a run directory; from a summary, the stored curve at its marks
+        for the success and crash rates, else nothing."""
+        if self.raw is not None:
+            return window_curve(self.raw.lines, key)
+        column = _STORED_COLUMNS.get(key)
+        return self.curve(column) if column else []
 
     # ---- curves at marks
     def curve(self, column: str) -> list[tuple[int, float]]:
@@ -350,5 +441,6 @@ def records_from_dirs(dirs: Sequence[Path], root: Path | None = None) -> list[Ru
     for d in dirs:
         d = Path(d)
         name = str(d.relative_to(root)) if root is not None else d.name
-        out.append(RunRecord(record_from_run(RawRun(d), name), str(root or d.parent)))
+        raw = RawRun(d)
+        out.append(RunRecord(record_from_run(raw, name), str(root or d.parent), raw))
     return out

@@ -43,7 +43,7 @@ def _read_lines(path: str | Path) -> tuple[list[dict], int]:
 def without_rolled_back(lines: list[dict]) -> list[dict]:
     """One history whose agent-steps only grow: a resumed learner trains on from its newest
     checkpoint, so each line drops the lines before it that are further on than itself (the
-    training the resume rolled back), as `learner report` read runs."""
+    training the resume rolled back)."""
     kept: list[dict] = []
     for line in lines:
         while kept and kept[-1]["agent_steps"] > line["agent_steps"]:
@@ -84,10 +84,10 @@ def smoothed_scene_rate(lines: list[dict], episodes: int = SMOOTHING, outcome: s
                         key: str = "agent_steps", keys: Sequence[str] | None = None) -> list:
     """MetaDrive's training rate of `outcome` smoothed as CoPO smoothed its curves, over the
     last `episodes` scene episodes (at least; whole progress lines apart), from the lines'
-    `scene_totals`, as `learner report` computed it. Per line with that many episodes of the
-    run behind it: (line[key], rate), or with `keys` (line[k] for k in keys) + (rate,). Empty
-    for runs written before `scene_totals` existed. A resumed process counts its totals from
-    0 again; they continue the run's."""
+    `scene_totals`. Per line with that many episodes of the run behind it: (line[key], rate),
+    or with `keys` (line[k] for k in keys) + (rate,). Empty for runs written before
+    `scene_totals` existed. A resumed process counts its totals from 0 again; they continue
+    the run's."""
     lines = without_rolled_back(lines)
     episodes = max(1, episodes)
     starts = set(process_starts(lines)) - {0}

@@ -126,7 +126,7 @@ def fmt(values: Iterable[float | None], digits: int = 2, signed: bool = False) -
 
 
 def format_number(value: float) -> str:
-    """Four significant digits or so, as `learner report` prints its numbers."""
+    """Four significant digits or so, as the report's Table 1 prints its numbers."""
     if not math.isfinite(value):
         return str(value)
     if value == 0:

@@ -104,8 +104,29 @@ def _split(source: str) -> tuple[Path, list[str]]:
     return Path(path), [g for g in globs.split(",") if g]
 
 
-def load(sources, training_only: bool = False) -> list[RunRecord]:
-    """The runs of every SOURCE (see the module's docstring), in order."""
+#: What reading a run directory raises when the directory is unreadable: no readable progress
+#: line, a line without agent-steps, a config or evaluation that does not parse.
+UNREADABLE = (ValueError, KeyError, TypeError, OSError)
+
+
+def _read_runs(dirs: list[Path], skipped: list | None) -> list[RawRun]:
+    """The run directories read; with a `skipped` list an unreadable one is appended to it as
+    {dir, reason} and left out, else its error is raised."""
+    out = []
+    for d in dirs:
+        try:
+            out.append(RawRun(d))
+        except UNREADABLE as e:
+            if skipped is None:
+                raise
+            skipped.append({"dir": str(d), "reason": str(e)})
+    return out
+
+
+def load(sources, training_only: bool = False, skipped: list | None = None) -> list[RunRecord]:
+    """The runs of every SOURCE (see the module's docstring), in order. Records made from run
+    directories keep them (`RunRecord.raw`). With a `skipped` list, a run directory that
+    cannot be read is left out and named there ({dir, reason}) instead of raising."""
     out: list[RunRecord] = []
     for source in sources:
         path, globs = _split(source)
@@ -113,12 +134,14 @@ def load(sources, training_only: bool = False) -> list[RunRecord]:
             # A run of a results folder's runs/ is named as the folder's summary names it.
             inside = path.parent.name == "runs"
             name = f"runs/{path.name}" if inside else path.name
-            records = [RunRecord(record_from_run(RawRun(path), name),
-                                 str(path.parent.parent if inside else path.parent))]
+            records = [RunRecord(record_from_run(raw, name),
+                                 str(path.parent.parent if inside else path.parent), raw)
+                       for raw in _read_runs([path], skipped)]
         elif path.is_dir() and run_dirs(path):
-            base = flatten(read_config(run_dirs(path)[0] / "config.toml"))
-            records = [RunRecord(record_from_run(RawRun(d), str(d.relative_to(path)), base),
-                                 str(path)) for d in run_dirs(path)]
+            raws = _read_runs(run_dirs(path), skipped)
+            base = flatten(raws[0].config) if raws else {}
+            records = [RunRecord(record_from_run(raw, str(raw.dir.relative_to(path)), base),
+                                 str(path), raw) for raw in raws]
             records += [RunRecord({"name": str(d.relative_to(path)),
                                    "evals": read_evals(d / "eval") + read_evals(d)}, str(path))
                         for d in eval_dirs(path, run_dirs(path))]

@@ -10,7 +10,7 @@ from collections import OrderedDict
 from typing import Callable, Iterable, Sequence
 
 from . import reference
-from .record import RunRecord
+from .record import MIN_WINDOW_EPISODES, WINDOW_KEYS, RunRecord
 from .stats import fmt, format_number, mean_ci
 
 METHOD_ORDER = ["cl", "ippo", "ccppo-mf", "ccppo-concat", "copo", "dynamic-lcf"]
@@ -36,16 +36,6 @@ METRICS = [
     ("successes_per_300", "Agents succeeding / 300 steps", "", True),
     ("failures_per_300", "Agents failing / 300 steps", "", False),
 ]
-# The last training window's value of an evaluation metric (None: training does not track it).
-WINDOW_KEYS = {
-    "collision_rate": "collisions_per_s", "success_rate": "success_rate",
-    "crash_rate": "crash_rate", "out_of_road_rate": "out_of_road_rate",
-    "timeout_rate": "timeout_rate", "accel_mean": "mean_accel", "accel_max": "mean_max_accel",
-    "reward_mean": "mean_reward", "reward_max": "max_reward", "length_mean": "mean_length",
-    "length_max": "max_length",
-}
-
-
 def steps_label(x: float) -> str:
     """"0", "500", "20k", "1.5M": agent-step counts at a glance."""
     a = abs(x)
@@ -397,10 +387,12 @@ def evals_table(records) -> str:
                           rows)
 
 
-def reach_table(records, thresholds=(0.5, 0.6, 0.7), by="method", order=()) -> str:
+def reach_table(records, thresholds=(0.5, 0.6, 0.7), by="method", order=(),
+                min_episodes=MIN_WINDOW_EPISODES) -> str:
     """Time to a training success: per group and threshold, the seeds whose curve reached it
     and the mean agent-steps and wall seconds (the run's clock, continued over resumes) they
-    took; 20-episode window and 100-episode smoothing."""
+    took; MetaDrive's 20-scene-episode window (runs written before it: the agent-episode
+    window once it holds `min_episodes` episodes) and the 100-episode smoothing."""
     rows = []
     for (scene, name), members in groups(records, by, order).items():
         for smoothed in (False, True):
@@ -408,8 +400,7 @@ def reach_table(records, thresholds=(0.5, 0.6, 0.7), by="method", order=()) -> s
                 continue
             cells = []
             for t in thresholds:
-                hits = [r.reach(t, smoothed) for r in members]
-                hits = [h for h in hits if h]
+                hits = reached(members, t, smoothed, min_episodes)
                 if not hits:
                     cells.append(f"0/{len(members)}")
                     continue
@@ -423,6 +414,13 @@ def reach_table(records, thresholds=(0.5, 0.6, 0.7), by="method", order=()) -> s
                           rows)
 
 
+def reached(members, threshold, smoothed=False, min_episodes=MIN_WINDOW_EPISODES) -> list:
+    """The first reaches ({agent_steps, env_steps, wall_s}) of the runs that reached a
+    training success of `threshold` (see `RunRecord.reach`)."""
+    hits = [r.reach(threshold, smoothed, min_episodes) for r in members]
+    return [h for h in hits if h]
+
+
 def lcf_table(records, by="method", order=()) -> str:
     """The LCF angle of each seed's final update by live-neighbour count, mean ± 95 % over
     seeds, for the groups whose angle is not 0 throughout."""
@@ -433,7 +431,8 @@ def lcf_table(records, by="method", order=()) -> str:
                                                                  .values()) for l in finals):
             continue
         for l in finals:
-            buckets = ordered(buckets, l.get("by_neighbours") or {})
+            # Every bucket some seed saw, in the order first seen.
+            buckets += [b for b in l.get("by_neighbours") or {} if b not in buckets]
         rows.append((scene, name, finals))
     if not rows:
         return ""
@@ -446,9 +445,37 @@ def lcf_table(records, by="method", order=()) -> str:
                            *(f"{b} neighbours" for b in buckets)], out)
 
 
-def endings_table(records, eval_seed=None, by="method", order=()) -> str:
+def _ending_shares(r, eval_seed, pool):
+    """A run's share of evaluated agent episodes per ending (mean action): of its evaluation
+    on `eval_seed` (any seed: the first), or with `pool` of all its evaluations on its scene
+    together; None when they count no endings."""
+    if pool and eval_seed is None:
+        evals = [e for e in r.evals if e["actions"] == "mean" and e["scenario"] == r.scene]
+    else:
+        evals = [e for e in [r.evaluation(eval_seed, "mean")] if e]
+    counts: dict[str, float] = {}
+    for e in evals:
+        for k, v in (e.get("endings") or {}).items():
+            counts[k] = counts.get(k, 0) + v
+    total = sum(counts.values())
+    return {k: v / total for k, v in counts.items()} if total else None
+
+
+def estimate_cell(values) -> str:
+    """A cell of the report's tables: `mean ± half-width` in about four significant digits,
+    the value with "(1 seed)" alone, a dash for none."""
+    mean, half = mean_ci(values)
+    if mean is None:
+        return "—"
+    return (f"{format_number(mean)} ± {format_number(half)}" if half is not None
+            else f"{format_number(mean)} (1 seed)")
+
+
+def endings_table(records, eval_seed=None, by="method", order=(), report=False) -> str:
     """Share of the evaluated agent episodes (mean action) per ending (outcome / route stage
-    / what a crash hit), mean ± 95 % over the seeds whose evaluations count endings."""
+    / what a crash hit), mean ± 95 % over the seeds whose evaluations count endings, most
+    frequent first, per scene that has them. `report`: as the report prints it (a heading per
+    scene, Table 1's cells, every evaluation of a run pooled when no seed is picked)."""
     out = []
     for scene in ordered(SCENE_AGENTS, (r.scene for r in records if r.is_training)):
         table = [(name, members) for (s, name), members in groups(records, by, order).items()
@@ -456,12 +483,7 @@ def endings_table(records, eval_seed=None, by="method", order=()) -> str:
         per_group = []
         endings = {}
         for name, members in table:
-            shares = []
-            for r in members:
-                e = r.evaluation(eval_seed, "mean")
-                total = sum((e or {}).get("endings", {}).values())
-                if total:
-                    shares.append({k: v / total for k, v in e["endings"].items()})
+            shares = [x for x in (_ending_shares(r, eval_seed, report) for r in members) if x]
             for s in shares:
                 for k, v in s.items():
                     endings[k] = max(endings.get(k, 0), v)
@@ -469,6 +491,12 @@ def endings_table(records, eval_seed=None, by="method", order=()) -> str:
         if not endings:
             continue
         keys = sorted(endings, key=lambda k: (-endings[k], k))
+        if report:
+            rows = [[f"`{k}`", *(estimate_cell([s.get(k, 0.0) for s in shares])
+                                 for _, shares in per_group)] for k in keys]
+            out.append(f"### {scene}\n\n" + markdown_table(
+                ["Ending", *(label(n, by) for n, _ in per_group)], rows))
+            continue
         rows = [[f"`{k}`", *(fmt([s.get(k, 0.0) for s in shares], 3) if shares else "–"
                              for _, shares in per_group)] for k in keys]
         out.append(f"{scene}:\n\n" + markdown_table(
@@ -476,21 +504,22 @@ def endings_table(records, eval_seed=None, by="method", order=()) -> str:
     return "\n".join(out)
 
 
-def table1(records, scene, by="method", order=(), eval_seeds=None) -> str:
-    """`learner report`'s Table 1: groups as columns, every metric as a row, mean ± 95 %
-    half-width over seeds; from the mean-action evaluations when every seed of a column has
-    one (several evaluation seeds: their mean), else the last training window."""
-    table = [(name, members) for (s, name), members in groups(records, by, order).items()
-             if s == scene]
-    values, sources = {}, []
-    for name, members in table:
+def table1_values(records, scene, by="method", order=(), eval_seeds=None) -> list[dict]:
+    """Table 1's numbers for one scene, a dict per group: `group`, `seeds`, `source` ("eval"
+    when every seed of the group has a mean-action evaluation of its scene, on one of
+    `eval_seeds` if given, else "training"), `eval_seeds` behind an eval source, and
+    `metrics` {key: (mean, half-width)} over seeds (a run evaluated on several seeds counts
+    their mean; from training, the last window's value; (None, None) where no seed has it)."""
+    out = []
+    for (s, name), members in groups(records, by, order).items():
+        if s != scene:
+            continue
+
         def evals(r):
             return [e for e in r.evals if e["actions"] == "mean" and e["scenario"] == r.scene
                     and (not eval_seeds or e["seed"] in eval_seeds)]
         from_eval = all(evals(r) for r in members)
-        seeds = sorted({e["seed"] for r in members for e in evals(r)}) if from_eval else []
-        sources.append(f"eval (seed{'s' if len(seeds) > 1 else ''} "
-                       f"{', '.join(map(str, seeds))})" if from_eval else "training")
+        metrics = {}
         for key, *_ in METRICS:
             per_run = []
             for r in members:
@@ -502,27 +531,48 @@ def table1(records, scene, by="method", order=(), eval_seeds=None) -> str:
                 else:
                     per_run.append(r.last_window(WINDOW_KEYS[key]) if key in WINDOW_KEYS
                                    else None)
-            values[(name, key)] = mean_ci(per_run)
+            metrics[key] = mean_ci(per_run)
+        out.append({
+            "group": name, "members": members, "seeds": [r.seed for r in members],
+            "source": "eval" if from_eval else "training",
+            "eval_seeds": sorted({e["seed"] for r in members for e in evals(r)})
+            if from_eval else [],
+            "metrics": metrics,
+        })
+    return out
+
+
+def table1(records, scene, by="method", order=(), eval_seeds=None) -> str:
+    """The report's Table 1: groups as columns, every metric as a row, mean ± 95 %
+    half-width over seeds; from the mean-action evaluations when every seed of a column has
+    one (several evaluation seeds: their mean), else the last training window. The best mean
+    of a row is bold (every one tied for it), none where all columns tie."""
+    table = table1_values(records, scene, by, order, eval_seeds)
     rows = []
     for key, text, unit, higher in METRICS:
-        present = [values[(n, key)][0] for n, _ in table if values[(n, key)][0] is not None]
+        present = [g["metrics"][key][0] for g in table if g["metrics"][key][0] is not None]
         best = (max if higher else min)(present) if present else None
+        bold = len(present) > 1 and any(v != best for v in present)
         cells = []
-        for name, _ in table:
-            mean, half = values[(name, key)]
+        for g in table:
+            mean, half = g["metrics"][key]
             cell = "—" if mean is None else (
                 f"{format_number(mean)} ± {format_number(half)}" if half is not None
                 else f"{format_number(mean)} (1 seed)")
-            cells.append(f"**{cell}**" if mean is not None and mean == best and len(present) > 1
-                         else cell)
+            cells.append(f"**{cell}**" if bold and mean is not None and mean == best else cell)
         rows.append([f"{text}{f' ({unit})' if unit else ''} {'↑' if higher else '↓'}", *cells])
-    rows.append(["Seeds", *(", ".join(str(r.seed) for r in m) for _, m in table)])
-    rows.append(["Source", *sources])
+    rows.append(["Seeds", *(", ".join(str(s) for s in g["seeds"]) for g in table)])
+    rows.append(["Source", *(
+        f"eval (seed{'s' if len(g['eval_seeds']) > 1 else ''} "
+        f"{', '.join(map(str, g['eval_seeds']))})" if g["source"] == "eval" else "training"
+        for g in table)])
     rows.append(["Agent-steps trained (mean)",
-                 *(steps_label(sum(r.agent_steps for r in m) / len(m)) for _, m in table)])
+                 *(steps_label(sum(r.agent_steps for r in g["members"]) / len(g["members"]))
+                   for g in table)])
     rows.append(["Wall time per run (s, mean)",
-                 *(f"{sum(r.wall_s for r in m) / len(m):.0f}" for _, m in table)])
-    return markdown_table(["Metric", *(label(n, by) for n, _ in table)], rows)
+                 *(f"{sum(r.wall_s for r in g['members']) / len(g['members']):.0f}"
+                   for g in table)])
+    return markdown_table(["Metric", *(label(g["group"], by) for g in table)], rows)
 
 
 # ---------------------------------------------------------------- the grid's tables
