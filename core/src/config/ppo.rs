@@ -28,6 +28,10 @@ pub struct PpoConfig {
     pub max_importance_weight: f64,
     pub kl_coef: f64,
     pub kl_target: f64,
+    /// α of advantage-prioritised minibatches (0: every row once per epoch).
+    pub advantage_priority: f64,
+    /// β: how much of the prioritised draw's bias the rows' weights undo (1: all of it).
+    pub priority_correction: f64,
 }
 
 /// Where the Gaussian policy's standard deviation comes from.
@@ -115,6 +119,23 @@ impl PpoConfig {
         if p.epochs == 0 || p.minibatch_size == 0 || p.train_batch_env_steps == 0 {
             problems.push(
                 "ppo.epochs, ppo.minibatch_size and ppo.train_batch_env_steps must be > 0"
+                    .to_string(),
+            );
+        }
+        // Written as "all valid" so that a NaN is a problem too.
+        let priority_valid = p.advantage_priority >= 0.0
+            && p.advantage_priority.is_finite()
+            && (0.0..=1.0).contains(&p.priority_correction);
+        if !priority_valid {
+            problems.push(
+                "ppo.advantage_priority must be >= 0 and ppo.priority_correction in [0, 1]"
+                    .to_string(),
+            );
+        }
+        if p.advantage_priority > 0.0 && p.objective == PpoObjective::Decoupled {
+            problems.push(
+                "ppo.advantage_priority needs ppo.objective = \"clipped\" (the decoupled \
+                 objective weights its rows already)"
                     .to_string(),
             );
         }

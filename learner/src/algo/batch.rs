@@ -3,6 +3,7 @@
 
 use std::borrow::Cow;
 
+use rand::Rng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Tensor};
@@ -309,6 +310,42 @@ pub fn epoch_order(len: usize, rng: &mut ChaCha8Rng) -> Vec<i64> {
     order
 }
 
+/// An epoch's rows drawn by priority: `len` draws with replacement, row i with probability
+/// P(i) ∝ |advantage_i|^α, and each draw's weight (len·P(i))^−β over the largest weight.
+pub fn prioritised_order(
+    advantages: &[f32],
+    alpha: f64,
+    beta: f64,
+    rng: &mut ChaCha8Rng,
+) -> (Vec<i64>, Vec<f32>) {
+    // A floor so a row with no advantage can still be drawn (and its weight stays finite).
+    const FLOOR: f64 = 1e-6;
+    let priorities: Vec<f64> = advantages
+        .iter()
+        .map(|a| f64::from(a.abs()).powf(alpha) + FLOOR)
+        .collect();
+    let total: f64 = priorities.iter().sum();
+    let mut cumulative = Vec::with_capacity(priorities.len());
+    let mut running = 0.0;
+    for p in &priorities {
+        running += p / total;
+        cumulative.push(running);
+    }
+    let len = advantages.len();
+    let order: Vec<i64> = (0..len)
+        .map(|_| {
+            let u = rng.r#gen::<f64>() * running;
+            cumulative.partition_point(|&c| c <= u).min(len - 1) as i64
+        })
+        .collect();
+    let weights: Vec<f64> = order
+        .iter()
+        .map(|&i| (len as f64 * priorities[i as usize] / total).powf(-beta))
+        .collect();
+    let largest = weights.iter().copied().fold(f64::MIN_POSITIVE, f64::max);
+    (order, weights.iter().map(|w| (w / largest) as f32).collect())
+}
+
 /// Zero mean, unit variance (per minibatch, as in well-tuned PPO implementations).
 pub fn standardize(x: &Tensor) -> Tensor {
     if x.size()[0] < 2 {
@@ -325,4 +362,43 @@ pub fn explained_variance(values: &Tensor, returns: &Tensor) -> f64 {
     }
     let var_residual = f64::try_from((returns - values).var(false)).unwrap_or(f64::NAN);
     1.0 - var_residual / var_returns
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::SeedableRng;
+
+    use super::*;
+
+    #[test]
+    fn a_prioritised_epoch_draws_by_advantage_and_weights_the_draws_back() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        // Row 0 has no advantage, row 3 three times row 1's.
+        let advantages = [0.0f32, 1.0, -2.0, 3.0];
+        let draws = 60_000;
+        let mut counts = [0usize; 4];
+        let mut weight_of = [0.0f32; 4];
+        for _ in 0..draws / advantages.len() {
+            let (order, weights) = prioritised_order(&advantages, 1.0, 1.0, &mut rng);
+            assert_eq!((order.len(), weights.len()), (4, 4), "one draw per row");
+            for (&row, &w) in order.iter().zip(&weights) {
+                counts[row as usize] += 1;
+                weight_of[row as usize] = w;
+            }
+        }
+        let share = |row: usize| counts[row] as f64 / draws as f64;
+        assert_eq!(counts[0], 0, "a row without advantage is (almost) never drawn");
+        for (row, expected) in [(1, 1.0 / 6.0), (2, 2.0 / 6.0), (3, 3.0 / 6.0)] {
+            assert!((share(row) - expected).abs() < 0.01, "row {row}: {}", share(row));
+        }
+        // Full correction: weight ∝ 1/P, the rarest drawn row's weight the largest (1).
+        assert!((weight_of[1] - 1.0).abs() < 1e-6);
+        assert!((weight_of[3] - 1.0 / 3.0).abs() < 1e-4, "{weight_of:?}");
+        // α = 0: uniform draws, every weight 1.
+        let (_, weights) = prioritised_order(&advantages, 0.0, 1.0, &mut rng);
+        assert!(weights.iter().all(|&w| (w - 1.0).abs() < 1e-6), "{weights:?}");
+        // β = 0: no correction.
+        let (_, weights) = prioritised_order(&advantages, 1.0, 0.0, &mut rng);
+        assert!(weights.iter().all(|&w| w == 1.0), "{weights:?}");
+    }
 }

@@ -90,6 +90,30 @@ mod tests {
     }
 
     #[test]
+    fn advantage_prioritised_minibatches_draw_a_batch_per_epoch_and_still_learn() {
+        let _rng = crate::test_rng::seeded(3);
+        let mut run = RunConfig::default();
+        run.run.seed = 7;
+        run.ppo.hidden = vec![16];
+        run.ppo.minibatch_size = 64;
+        run.ppo.learning_rate = 0.01;
+        run.ppo.advantage_priority = 1.0;
+        let mut algo = ippo(&run, 3, 2);
+        let start = mean_action(algo.policy());
+        for round in 0..30 {
+            let fragment = bandit_fragment(algo.policy(), round);
+            let stats = algo.update(&[fragment]).unwrap();
+            assert_eq!(stats.samples_trained, 64 * run.ppo.epochs, "a draw of 64 per epoch");
+            assert!(stats.policy_loss.is_finite());
+        }
+        let end = mean_action(algo.policy());
+        assert!(
+            (end - 0.5).abs() < 0.15 && (start - 0.5).abs() > 0.3,
+            "mean action {start} → {end}"
+        );
+    }
+
+    #[test]
     fn the_learning_rate_follows_the_schedule_told_before_each_update() {
         let _rng = crate::test_rng::seeded(2);
         let mut run = RunConfig::default();

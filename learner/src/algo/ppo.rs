@@ -47,7 +47,8 @@ pub fn decoupled_surrogate(
     )
 }
 
-fn weighted_clipped_surrogate(
+/// [`clipped_surrogate`] with each row's term weighted (None: all 1).
+pub fn weighted_clipped_surrogate(
     new_log_probs: &Tensor,
     old_log_probs: &Tensor,
     advantages: &Tensor,

@@ -39,10 +39,10 @@ use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::batch::{
     CriticInput, Head, TrainBatch, alive_observations, assemble, epoch_order,
-    explained_variance, standardize,
+    explained_variance, prioritised_order, standardize,
 };
 use super::coordination::{Coordination, MetaStep};
-use super::ppo::{clipped_surrogate, decoupled_surrogate, value_loss};
+use super::ppo::{decoupled_surrogate, value_loss, weighted_clipped_surrogate};
 use super::safety::Lagrangian;
 use super::{AlgoError, Algorithm, Phases, UpdateStats};
 use crate::optim::Adam;
@@ -243,6 +243,7 @@ impl<C: CriticInput> SharedPpo<C> {
                 .map(|h| h.advantages.shallow_clone()),
             proximal_log_probs,
             kl_anchor: start.filter(|_| self.kl_coef > 0.0),
+            priority_weights: None,
             obs,
         };
         phases.add("advantages, start policy", started.elapsed().as_secs_f64());
@@ -364,7 +365,13 @@ impl<C: CriticInput> SharedPpo<C> {
                 c.clip,
                 c.max_importance_weight,
             ),
-            _ => clipped_surrogate(&log_probs, &mb.behaviour_log_probs, &advantages, c.clip),
+            _ => weighted_clipped_surrogate(
+                &log_probs,
+                &mb.behaviour_log_probs,
+                &advantages,
+                c.clip,
+                mb.priority_weights.as_ref(),
+            ),
         };
         let entropy = gaussian_entropy(&log_std).mean(Kind::Float);
         let mut loss = &surrogate.loss - &entropy * c.entropy_coef;
@@ -474,6 +481,8 @@ struct Rows {
     proximal_log_probs: Option<Tensor>,
     /// With a KL penalty: that policy's mean and log-std, what the penalty measures from.
     kl_anchor: Option<(Tensor, Tensor)>,
+    /// With `ppo.advantage_priority`: each drawn row's weight in the surrogate.
+    priority_weights: Option<Tensor>,
 }
 
 impl Rows {
@@ -492,14 +501,33 @@ impl Rows {
             cost_advantages: self.cost_advantages.as_ref().map(&f),
             proximal_log_probs: self.proximal_log_probs.as_ref().map(&f),
             kl_anchor: self.kl_anchor.as_ref().map(|(m, s)| (f(m), f(s))),
+            priority_weights: self.priority_weights.as_ref().map(&f),
         }
     }
 
-    /// The rows in a fresh order drawn from `rng` (one copy per epoch: its minibatches are
-    /// then views).
-    fn shuffled(&self, rng: &mut ChaCha8Rng, len: usize) -> Rows {
-        let order = Tensor::from_slice(&epoch_order(len, rng)).to_device(self.obs.device());
-        self.map(|t| t.index_select(0, &order))
+    /// One epoch's rows, drawn from `rng`: every row once in a fresh order, or with
+    /// `ppo.advantage_priority` a prioritised draw and its weights. One copy per epoch: its
+    /// minibatches are then views.
+    fn epoch(&self, rng: &mut ChaCha8Rng, ppo: &PpoConfig) -> Result<Rows, tch::TchError> {
+        let device = self.obs.device();
+        let (order, weights) = if ppo.advantage_priority > 0.0 {
+            let advantages = Vec::<f32>::try_from(
+                self.advantages.to_device(Device::Cpu).to_kind(Kind::Float),
+            )?;
+            let (order, weights) = prioritised_order(
+                &advantages,
+                ppo.advantage_priority,
+                ppo.priority_correction,
+                rng,
+            );
+            (order, Some(Tensor::from_slice(&weights).to_device(device)))
+        } else {
+            (epoch_order(self.obs.size()[0] as usize, rng), None)
+        };
+        let order = Tensor::from_slice(&order).to_device(device);
+        let mut rows = self.map(|t| t.index_select(0, &order));
+        rows.priority_weights = weights;
+        Ok(rows)
     }
 
     /// Consecutive minibatches of `size` rows (the last may be shorter).
@@ -700,8 +728,8 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         let one_thread_each = self.parallel.then(OneTorchThread::set);
         for _ in 0..self.config.epochs {
             let shuffled = phases.time("epoch shuffle", || {
-                prepared.rows.shuffled(&mut rng, prepared.batch.len)
-            });
+                prepared.rows.epoch(&mut rng, &self.config)
+            })?;
             for minibatch in shuffled.minibatches(self.config.minibatch_size) {
                 match self.minibatch_step(&minibatch, prepared.objective, &mut phases)? {
                     Some(step) => losses.add(&step),
