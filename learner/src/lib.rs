@@ -3,6 +3,7 @@
 //! by the Python analysis module (`python -m junction.analysis report`), not here.
 
 pub mod algo;
+pub mod app;
 pub mod bench;
 pub mod checkpoint;
 pub mod ingest;
