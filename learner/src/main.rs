@@ -12,7 +12,7 @@ use junction_common::shutdown::end_by_sigint;
 use junction_common::telemetry::{LogFormat, init_logging};
 use junction_learner::algo;
 use junction_learner::app::{LearnerApp, RunDir, ServeOptions, StopHandle, resolve_device};
-use junction_learner::transport_bench;
+use junction_learner::transport::bench as transport_bench;
 
 #[derive(Parser)]
 #[command(

@@ -14,9 +14,10 @@ use junction_common::config::RunConfig;
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
-use junction_learner::ingest::Ingest;
-use junction_learner::metrics::LearnerMetrics;
-use junction_learner::server::{LearnerService, Shared};
+use junction_learner::hub::Shared;
+use junction_learner::telemetry::metrics::LearnerMetrics;
+use junction_learner::transport::grpc::LearnerService;
+use junction_learner::transport::ingest::Ingest;
 
 const QUEUE: usize = 2;
 const SENT: usize = 40;

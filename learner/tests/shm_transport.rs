@@ -14,11 +14,12 @@ use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
-use junction_learner::ingest::Ingest;
-use junction_learner::metrics::LearnerMetrics;
-use junction_learner::server::{LearnerService, Shared};
-use junction_learner::shm::ShmServer;
-use junction_learner::transport_bench::realistic_fragment;
+use junction_learner::hub::Shared;
+use junction_learner::telemetry::metrics::LearnerMetrics;
+use junction_learner::transport::bench::realistic_fragment;
+use junction_learner::transport::grpc::LearnerService;
+use junction_learner::transport::ingest::Ingest;
+use junction_learner::transport::shm::ShmServer;
 
 fn small_run(queue: usize) -> RunConfig {
     let mut config = RunConfig::default();

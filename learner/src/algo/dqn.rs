@@ -33,8 +33,8 @@ use super::batch::{alive_neighbour_counts, alive_observations};
 use super::coordination::LcfReport;
 use super::replay::ReplayBuffer;
 use super::{AlgoError, Algorithm, UpdateStats};
-use crate::metrics::DROP_OFF_GRID;
 use crate::optim::Adam;
+use crate::telemetry::labels::DROP_OFF_GRID;
 
 /// Checkpoint prefix of the target network's variables.
 const TARGET: &str = "target";

@@ -16,6 +16,7 @@
 //!
 //! Signals, the exit code and the configuration layers stay in the binary (`main.rs`).
 
+pub mod local_actors;
 mod run_dir;
 
 pub use run_dir::RunDir;
@@ -39,15 +40,16 @@ use junction_common::{
     GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
 };
 
-use crate::checkpoint::Checkpointer;
-use crate::ingest::Ingest;
-use crate::local::{ActorCommand, LocalActors};
-use crate::metrics::LearnerMetrics;
-use crate::security::{self, TokenCheck};
-use crate::server::{LearnerService, Shared};
-use crate::shm::ShmServer;
-use crate::tensorboard::EventWriter;
-use crate::trainer::{Progress, Trainer, weights_message};
+use crate::hub::Shared;
+use crate::telemetry::metrics::LearnerMetrics;
+use crate::telemetry::tensorboard::EventWriter;
+use crate::training::checkpoint::Checkpointer;
+use crate::training::trainer::{Progress, Trainer, weights_message};
+use crate::transport::grpc::LearnerService;
+use crate::transport::ingest::Ingest;
+use crate::transport::security::{self, TokenCheck};
+use crate::transport::shm::ShmServer;
+use local_actors::{ActorCommand, LocalActors};
 
 /// How long local actors get to exit by themselves once they have been told the run is over.
 const LOCAL_ACTOR_GRACE: Duration = Duration::from_secs(10);

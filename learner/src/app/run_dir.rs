@@ -12,8 +12,8 @@ use junction_common::config::RunConfig;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 
 use crate::algo;
-use crate::checkpoint::{CheckpointMeta, Checkpointer};
-use crate::trainer::Progress;
+use crate::training::checkpoint::{CheckpointMeta, Checkpointer};
+use crate::training::trainer::Progress;
 
 /// A run's directory, opened for a new run or for a resume.
 #[derive(Debug, Clone)]

@@ -17,7 +17,7 @@ use prost::Message;
 use junction_common::config::{AlgoKind, RunConfig, SafetyMode};
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 
-use crate::progress::ProgressLine;
+use super::progress::ProgressLine;
 
 /// What every event file starts with (TensorFlow's current event format).
 const FILE_VERSION: &str = "brain.Event:2";
@@ -248,7 +248,7 @@ impl Scalars {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::progress::{LcfProgress, UpdateProgress};
+    use crate::telemetry::progress::{LcfProgress, UpdateProgress};
 
     /// Reads the records back, checking both checksums of each.
     fn read_records(bytes: &[u8]) -> Vec<Vec<u8>> {

@@ -26,9 +26,9 @@ use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
 
-use crate::ingest::{Ingest, Rejection};
-use crate::metrics::TRANSPORT_SHM;
-use crate::server::Shared;
+use super::ingest::{Ingest, Rejection};
+use crate::hub::Shared;
+use crate::telemetry::labels::TRANSPORT_SHM;
 
 /// How often the server counts connected actors and clears dead processes' resources.
 const HOUSEKEEPING: Duration = Duration::from_secs(1);

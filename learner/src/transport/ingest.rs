@@ -13,8 +13,8 @@ use junction_common::fragment::{FragmentError, RolloutFragment};
 use junction_common::shm_layout::LayoutError;
 use junction_common::spec::ACTION_DIM;
 
-use crate::metrics::REJECT_SCENARIO;
-use crate::server::Shared;
+use crate::hub::Shared;
+use crate::telemetry::labels::REJECT_SCENARIO;
 
 /// A refused fragment: the metrics label and what was wrong.
 #[derive(Debug, Clone, PartialEq)]

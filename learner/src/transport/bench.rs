@@ -27,11 +27,13 @@ use junction_common::{
     GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
 };
 
+use super::grpc::LearnerService;
+use super::ingest::Ingest;
+use super::shm::ShmServer;
 use crate::bench::{SYNTHETIC_NEIGHBOURS, ring_neighbours};
-use crate::ingest::Ingest;
-use crate::metrics::{LearnerMetrics, REJECT_DECODE, REJECT_SCENARIO};
-use crate::server::{LearnerService, Shared};
-use crate::shm::ShmServer;
+use crate::hub::Shared;
+use crate::telemetry::labels::{REJECT_DECODE, REJECT_SCENARIO};
+use crate::telemetry::metrics::LearnerMetrics;
 
 #[derive(Debug, serde::Serialize)]
 pub struct TransportReport {

@@ -20,13 +20,13 @@
 //! | `update` | after the first update of this process, the newest update's diagnostics: `policy_loss`, `value_loss`, `entropy`, `approx_kl`, `clip_fraction`, `explained_variance`, `grad_norm` (before clipping), `learning_rate`, `kl` and `kl_coef` (the adaptive KL penalty's, 0 without one), the policy lag of the fragments it trained on (`lag_mean`, `lag_max`, versions), `lagrange_multiplier` (PPO-Lagrangian's λ, 0 when off), and DQN's `epsilon` and `q_mean` (0 for PPO; DQN's TD loss is `value_loss`) |
 //!
 //! Fields are only ever added: every reader takes a missing field as its default. The same
-//! values go to the run's TensorBoard event file (`crate::tensorboard`).
+//! values go to the run's TensorBoard event file (`super::tensorboard`).
 
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::stats::{SceneTotals, SceneWindowSummary, WindowSummary};
+use super::stats::{SceneTotals, SceneWindowSummary, WindowSummary};
 
 /// One line of `progress.jsonl` (written by the trainer, read by `python -m junction.analysis`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

@@ -12,7 +12,7 @@ use tonic::{Request, Status};
 use junction_common::auth::{self, AuthError, Token};
 use junction_common::config::ServerSection;
 
-use crate::metrics::REFUSED_UNAUTHENTICATED;
+use crate::telemetry::labels::REFUSED_UNAUTHENTICATED;
 
 #[derive(Debug, thiserror::Error)]
 pub enum SecurityError {

@@ -19,13 +19,13 @@ use junction_common::proto;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::weights;
 
+use super::checkpoint::{CheckpointMeta, Checkpointer};
 use crate::algo::{Algorithm, Stage, UpdateStats};
-use crate::checkpoint::{CheckpointMeta, Checkpointer};
-use crate::metrics::{DROP_SHUTDOWN, DROP_STALE, DROP_UPDATE_FAILED};
-use crate::progress::{LcfProgress, ProgressLine, UpdateProgress};
-use crate::server::Shared;
-use crate::stats::{EpisodeWindow, SceneEpisodeWindow};
-use crate::tensorboard::{EventWriter, Scalars};
+use crate::hub::Shared;
+use crate::telemetry::labels::{DROP_SHUTDOWN, DROP_STALE, DROP_UPDATE_FAILED};
+use crate::telemetry::progress::{LcfProgress, ProgressLine, UpdateProgress};
+use crate::telemetry::stats::{EpisodeWindow, SceneEpisodeWindow, WindowSummary};
+use crate::telemetry::tensorboard::{EventWriter, Scalars};
 
 /// How long the loop waits for a fragment before it checks budget, progress and stop requests.
 const POLL: Duration = Duration::from_millis(200);
@@ -392,7 +392,7 @@ impl Trainer {
                 .unwrap_or(0),
             config: self.shared.config.to_toml(),
             actors_registered: self.shared.actors_registered(),
-            format_version: crate::checkpoint::FORMAT_VERSION,
+            format_version: super::checkpoint::FORMAT_VERSION,
         };
         let path = self.checkpointer.write(&meta, &policy, &state)?;
         tracing::info!(version = p.version, path = %path.display(), "checkpoint written");
@@ -475,7 +475,7 @@ impl Trainer {
 }
 
 impl Trainer {
-    fn publish_status(&self, reporter: &Reporter, summary: &crate::stats::WindowSummary) {
+    fn publish_status(&self, reporter: &Reporter, summary: &WindowSummary) {
         if let Ok(mut status) = self.shared.status.lock() {
             status.policy_version = self.progress.version;
             status.agent_steps_consumed = self.progress.agent_steps;
@@ -556,7 +556,7 @@ fn log_update(stats: &UpdateStats, seconds: f64) {
 mod tests {
     use super::*;
     use crate::algo;
-    use crate::metrics::LearnerMetrics;
+    use crate::telemetry::metrics::LearnerMetrics;
     use junction_common::config::RunConfig;
     use junction_common::lcf;
 
