@@ -12,6 +12,8 @@ per seed, then one summary line (means with 95 % t-intervals over the seeds):
                                    run.stats_window_scene_episodes) / smoothed over the last 100
                                    (CoPO's smoothing, from the lines' scene_totals); null if never
   agent_steps_to_threshold_20 / _100   agent-steps consumed then
+  reach_20 / reach_100             the same for every --also threshold, {threshold: [seconds,
+                                   agent-steps] or null}
   eval_success / eval_crash / eval_out_of_road   the evaluation's rates over agent episodes,
                                    each {value, low, high} (Wilson 95 %), and the same per scene
                                    episode (eval_scene_success: Student's t over scene episodes,
@@ -20,11 +22,12 @@ per seed, then one summary line (means with 95 % t-intervals over the seeds):
   wall time), final_success_20: the run's totals and its last live window
 
   scripts/time-to-success.py [--seeds 1,2,3] [--seconds 300 | --agent-steps N] [--actors 2]
-      [--eval-seed 1000] [--eval-episodes 1000] [--threshold 0.8] [--out DIR]
+      [--eval-seed 1000] [--eval-episodes 1000] [--threshold 0.8] [--also 0.6,0.7] [--out DIR]
       [-- extra `learner serve` flags, e.g. --preset fast or --set ppo.epochs=3]
 
-Resumable: a seed whose run directory already holds result.json is printed, not re-run; a run
-cut short (no result.json) is started again from scratch, as its clock would not be honest.
+Resumable: a seed whose run directory already holds result.json is printed, not re-run; one
+whose training finished (trained.json) is evaluated; a run cut short is started again from
+scratch, as its clock would not be honest.
 Needs `make build`. Training seeds are the runs' `run.seed`; the evaluation seed's traffic is a
 stream training never draws from (`actor eval --help`), and it should not be one used to tune.
 """
@@ -89,14 +92,18 @@ def interval(metric):
 
 def measure(args, seed, extra):
     run_dir = args.out / f"s{seed}"
-    result_file = run_dir / "result.json"
+    result_file, trained_file = run_dir / "result.json", run_dir / "trained.json"
     if result_file.exists():
         return json.loads(result_file.read_text())
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    run_dir.mkdir(parents=True)
-    print(f"time-to-success: seed {seed}: training in {run_dir}", file=sys.stderr)
-    wall = train(args, seed, run_dir, extra)
+    if trained_file.exists():
+        wall = json.loads(trained_file.read_text())["process_seconds"]
+    else:
+        if run_dir.exists():
+            shutil.rmtree(run_dir)
+        run_dir.mkdir(parents=True)
+        print(f"time-to-success: seed {seed}: training in {run_dir}", file=sys.stderr)
+        wall = train(args, seed, run_dir, extra)
+        trained_file.write_text(json.dumps({"process_seconds": wall}) + "\n")
     lines = read_progress(run_dir / "progress.jsonl")
     if not lines:
         sys.exit(f"time-to-success: seed {seed}: {run_dir}/progress.jsonl is empty")
@@ -108,6 +115,10 @@ def measure(args, seed, extra):
     smoothed = smoothed_scene_success(lines, 100, keys=("elapsed_s", "agent_steps"))
     reach_20 = first_reach(live, args.threshold)
     reach_100 = first_reach(smoothed, args.threshold)
+
+    def reaches(points):
+        return {str(t): (lambda r: r and [round(r[0], 1), r[1]])(first_reach(points, t))
+                for t in sorted({args.threshold, *args.also})}
     metrics = evaluation["metrics"]
     elapsed = last["elapsed_s"]
     result = {
@@ -120,6 +131,8 @@ def measure(args, seed, extra):
         "agent_steps_to_threshold_20": reach_20 and reach_20[1],
         "seconds_to_threshold_100": reach_100 and round(reach_100[0], 1),
         "agent_steps_to_threshold_100": reach_100 and reach_100[1],
+        "reach_20": reaches(live),
+        "reach_100": reaches(smoothed),
         "final_success_20": round(last["scene_window"]["success_rate"], 4),
         "eval_seed": args.eval_seed,
         "eval_episodes": evaluation["episodes"],
@@ -175,6 +188,8 @@ def main():
     parser.add_argument("--eval-seed", type=int, default=1000)
     parser.add_argument("--eval-episodes", type=int, default=1000)
     parser.add_argument("--threshold", type=float, default=0.8)
+    parser.add_argument("--also", default="0.6,0.7",
+                        help="more thresholds whose first reach is reported, comma-separated")
     parser.add_argument("--progress-interval", type=float, default=5.0,
                         help="seconds between progress lines (the resolution of the times)")
     parser.add_argument("--out", type=Path,
@@ -186,6 +201,7 @@ def main():
         if not os.access(args.bin / binary, os.X_OK):
             sys.exit(f"time-to-success: {args.bin / binary} not found; run `make build` first")
     seeds = [int(s) for s in args.seeds.split(",") if s]
+    args.also = [float(t) for t in args.also.split(",") if t]
     results = []
     for seed in seeds:
         results.append(measure(args, seed, args.extra))
