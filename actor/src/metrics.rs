@@ -2,7 +2,7 @@
 
 use prometheus::{Counter, IntCounter, IntGauge, Registry};
 
-use junction_common::telemetry::names;
+use junction_common::telemetry::{Registrar, names};
 
 pub struct ActorMetrics {
     pub registry: Registry,
@@ -23,62 +23,47 @@ pub struct ActorMetrics {
 impl ActorMetrics {
     pub fn new() -> Result<Self, prometheus::Error> {
         let registry = Registry::new();
-        let counter = |name: &str, help: &str| -> Result<IntCounter, prometheus::Error> {
-            let c = IntCounter::new(name, help)?;
-            registry.register(Box::new(c.clone()))?;
-            Ok(c)
-        };
-        let seconds = |name: &str, help: &str| -> Result<Counter, prometheus::Error> {
-            let c = Counter::new(name, help)?;
-            registry.register(Box::new(c.clone()))?;
-            Ok(c)
-        };
-        let policy_version = IntGauge::new(
-            names::ACTOR_POLICY_VERSION,
-            "Policy version the actor is running.",
-        )?;
-        registry.register(Box::new(policy_version.clone()))?;
-        let scene_agents = IntGauge::new(
-            names::ACTOR_SCENE_AGENTS,
-            "Learning-agent slots per scene (fewer than the scenario's during a curriculum).",
-        )?;
-        registry.register(Box::new(scene_agents.clone()))?;
-        let connected = IntGauge::new(
-            names::ACTOR_CONNECTED,
-            "1 while registered with the learner and streaming, 0 while (re)connecting.",
-        )?;
-        registry.register(Box::new(connected.clone()))?;
+        let r = Registrar::new(&registry);
         Ok(ActorMetrics {
-            env_steps: counter(names::ACTOR_ENV_STEPS, "Scene steps simulated.")?,
-            agent_steps: counter(names::ACTOR_AGENT_STEPS, "Agent-steps simulated.")?,
-            fragments_sent: counter(
+            env_steps: r.int_counter(names::ACTOR_ENV_STEPS, "Scene steps simulated.")?,
+            agent_steps: r.int_counter(names::ACTOR_AGENT_STEPS, "Agent-steps simulated.")?,
+            fragments_sent: r.int_counter(
                 names::ACTOR_FRAGMENTS_SENT,
                 "Rollout fragments handed to the transport.",
             )?,
-            policy_version,
-            policy_switches: counter(
+            policy_version: r.int_gauge(
+                names::ACTOR_POLICY_VERSION,
+                "Policy version the actor is running.",
+            )?,
+            policy_switches: r.int_counter(
                 names::ACTOR_POLICY_SWITCHES,
                 "Times the actor switched to newer weights.",
             )?,
-            inference_seconds: seconds(
+            inference_seconds: r.counter(
                 names::ACTOR_INFERENCE_SECONDS,
                 "Time spent in batched policy inference.",
             )?,
-            simulation_seconds: seconds(
+            simulation_seconds: r.counter(
                 names::ACTOR_SIMULATION_SECONDS,
                 "Time spent stepping scenes.",
             )?,
-            transport_seconds: seconds(
+            transport_seconds: r.counter(
                 names::ACTOR_TRANSPORT_SECONDS,
                 "CPU time spent moving fragments and weights (encoding, shared memory or gRPC).",
             )?,
-            scene_agents,
-            connected,
-            reconnects: counter(
+            scene_agents: r.int_gauge(
+                names::ACTOR_SCENE_AGENTS,
+                "Learning-agent slots per scene (fewer than the scenario's during a curriculum).",
+            )?,
+            connected: r.int_gauge(
+                names::ACTOR_CONNECTED,
+                "1 while registered with the learner and streaming, 0 while (re)connecting.",
+            )?,
+            reconnects: r.int_counter(
                 names::ACTOR_RECONNECTS,
                 "Times the actor registered again after losing the learner.",
             )?,
-            fragments_unconfirmed: counter(
+            fragments_unconfirmed: r.int_counter(
                 names::ACTOR_FRAGMENTS_UNCONFIRMED,
                 "Fragments sent on a rollout stream that broke before the learner confirmed it (the learner counts those it accepted).",
             )?,

@@ -6,7 +6,11 @@ use std::future::Future;
 use http_body_util::Full;
 use hyper::body::{Bytes, Incoming};
 use hyper::{Request, Response, StatusCode};
-use prometheus::{Encoder, Registry, TextEncoder};
+use prometheus::core::Collector;
+use prometheus::{
+    Counter, CounterVec, Encoder, Gauge, GaugeVec, Histogram, HistogramOpts, IntCounter,
+    IntCounterVec, IntGauge, Opts, Registry, TextEncoder,
+};
 
 /// Metric names, in one place so dashboards, tests and code agree. Prometheus conventions:
 /// `junction_` prefix, base units, `_total` on counters.
@@ -78,6 +82,81 @@ pub mod names {
     pub const ACTOR_RECONNECTS: &str = "junction_actor_reconnects_total";
     pub const ACTOR_FRAGMENTS_UNCONFIRMED: &str = "junction_actor_fragments_unconfirmed_total";
     pub const ACTOR_TRANSPORT_SECONDS: &str = "junction_actor_transport_seconds_total";
+}
+
+/// Creates a metric and registers it in one call: how the actor's and the learner's metric
+/// groups fill themselves from a shared [`Registry`] (each group's `register(&Registry)`).
+/// Every call fails as `prometheus` does: a bad name or a name registered twice.
+#[derive(Clone, Copy)]
+pub struct Registrar<'a>(&'a Registry);
+
+impl<'a> Registrar<'a> {
+    pub fn new(registry: &'a Registry) -> Self {
+        Registrar(registry)
+    }
+
+    /// Registers `metric` and hands it back.
+    pub fn register<M: Collector + Clone + 'static>(
+        &self,
+        metric: M,
+    ) -> Result<M, prometheus::Error> {
+        self.0.register(Box::new(metric.clone()))?;
+        Ok(metric)
+    }
+
+    pub fn int_counter(&self, name: &str, help: &str) -> Result<IntCounter, prometheus::Error> {
+        self.register(IntCounter::new(name, help)?)
+    }
+
+    pub fn counter(&self, name: &str, help: &str) -> Result<Counter, prometheus::Error> {
+        self.register(Counter::new(name, help)?)
+    }
+
+    pub fn int_gauge(&self, name: &str, help: &str) -> Result<IntGauge, prometheus::Error> {
+        self.register(IntGauge::new(name, help)?)
+    }
+
+    pub fn gauge(&self, name: &str, help: &str) -> Result<Gauge, prometheus::Error> {
+        self.register(Gauge::new(name, help)?)
+    }
+
+    pub fn int_counter_vec(
+        &self,
+        name: &str,
+        help: &str,
+        labels: &[&str],
+    ) -> Result<IntCounterVec, prometheus::Error> {
+        self.register(IntCounterVec::new(Opts::new(name, help), labels)?)
+    }
+
+    pub fn counter_vec(
+        &self,
+        name: &str,
+        help: &str,
+        labels: &[&str],
+    ) -> Result<CounterVec, prometheus::Error> {
+        self.register(CounterVec::new(Opts::new(name, help), labels)?)
+    }
+
+    pub fn gauge_vec(
+        &self,
+        name: &str,
+        help: &str,
+        labels: &[&str],
+    ) -> Result<GaugeVec, prometheus::Error> {
+        self.register(GaugeVec::new(Opts::new(name, help), labels)?)
+    }
+
+    pub fn histogram(
+        &self,
+        name: &str,
+        help: &str,
+        buckets: Vec<f64>,
+    ) -> Result<Histogram, prometheus::Error> {
+        self.register(Histogram::with_opts(
+            HistogramOpts::new(name, help).buckets(buckets),
+        )?)
+    }
 }
 
 /// `--log-format` of both binaries (parsed by clap through `FromStr`).
@@ -184,5 +263,44 @@ fn respond(registry: &Registry, request: &Request<Incoming>) -> Response<Full<By
             b"Junction: metrics at /metrics\n".to_vec(),
         ),
         _ => reply(StatusCode::NOT_FOUND, "text/plain", b"not found\n".to_vec()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_registrar_registers_each_metric_it_makes_once() {
+        let registry = Registry::new();
+        let r = Registrar::new(&registry);
+        r.int_counter("junction_test_total", "A counter.")
+            .unwrap()
+            .inc_by(3);
+        r.histogram("junction_test_seconds", "A histogram.", vec![1.0, 2.0])
+            .unwrap()
+            .observe(1.5);
+        r.gauge_vec("junction_test_rate", "A gauge by label.", &["scenario"])
+            .unwrap()
+            .with_label_values(&["tiny"])
+            .set(0.5);
+        let families = registry.gather();
+        let names: Vec<&str> = families.iter().map(|f| f.name()).collect();
+        assert_eq!(
+            names,
+            [
+                "junction_test_rate",
+                "junction_test_seconds",
+                "junction_test_total"
+            ]
+        );
+        assert_eq!(families[2].get_metric()[0].get_counter().get_value(), 3.0);
+        assert_eq!(
+            families[1].get_metric()[0]
+                .get_histogram()
+                .get_sample_count(),
+            1
+        );
+        assert!(r.int_counter("junction_test_total", "Again.").is_err());
     }
 }

@@ -83,7 +83,7 @@ impl Shared {
     ) -> Result<OwnedSemaphorePermit, Status> {
         Arc::clone(slots).try_acquire_owned().map_err(|_| {
             self.metrics
-                .requests_refused
+                .ingest.requests_refused
                 .with_label_values(&[REFUSED_STREAM_LIMIT])
                 .inc();
             tracing::warn!(
@@ -130,6 +130,7 @@ impl Shared {
     /// Counts a refused fragment and logs its cause once at warn level.
     pub(crate) fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
         self.metrics
+            .ingest
             .fragments_rejected
             .with_label_values(&[reason])
             .inc();

@@ -111,7 +111,7 @@ async fn a_full_queue_stalls_the_stream_and_loses_nothing() {
         !push.is_finished(),
         "the stream completed while the queue was full"
     );
-    assert_eq!(shared.metrics.fragments.get() as usize, QUEUE);
+    assert_eq!(shared.metrics.ingest.fragments.get() as usize, QUEUE);
 
     // Drain: everything arrives, in order, and the summary counts all of it.
     let mut received = Vec::new();
@@ -131,7 +131,7 @@ async fn a_full_queue_stalls_the_stream_and_loses_nothing() {
     assert_eq!(summary.accepted_fragments as usize, SENT);
     assert_eq!(summary.accepted_agent_steps as usize, SENT * 200 * 30);
     assert_eq!(
-        shared.metrics.agent_steps_accepted.get(),
+        shared.metrics.ingest.agent_steps_accepted.get(),
         summary.accepted_agent_steps
     );
 
@@ -147,7 +147,7 @@ async fn a_full_queue_stalls_the_stream_and_loses_nothing() {
         .expect_err("queue closed");
     assert_eq!(refused.code(), tonic::Code::Unavailable, "{refused:?}");
     assert_eq!(
-        shared.metrics.fragments.get() as usize,
+        shared.metrics.ingest.fragments.get() as usize,
         SENT,
         "not counted as accepted"
     );

@@ -87,6 +87,7 @@ impl Learner {
     fn rejected(&self, reason: &str) -> u64 {
         self.shared
             .metrics
+            .ingest
             .fragments_rejected
             .with_label_values(&[reason])
             .get()
@@ -95,6 +96,7 @@ impl Learner {
     fn bytes(&self, transport: &str) -> u64 {
         self.shared
             .metrics
+            .ingest
             .transport_bytes
             .with_label_values(&[transport])
             .get()
@@ -237,9 +239,9 @@ fn a_fragment_sent_over_grpc_and_over_shm_arrives_as_equal_values() {
         shm_layout::encoded_len(&fragment).unwrap() as u64
     );
     assert_eq!(learner.bytes("grpc"), grpc_bytes as u64);
-    assert_eq!(learner.shared.metrics.fragments.get(), 2);
+    assert_eq!(learner.shared.metrics.ingest.fragments.get(), 2);
     assert_eq!(
-        learner.shared.metrics.agent_steps_accepted.get(),
+        learner.shared.metrics.ingest.agent_steps_accepted.get(),
         2 * fragment.agent_steps() as u64
     );
 }
@@ -274,7 +276,7 @@ fn a_full_learner_makes_shm_publishers_wait_and_loses_nothing() {
     );
     assert_eq!(learner.queue.len(), queue);
     // Accepted means queued: the fragments waiting in the subscriber's buffer are not yet.
-    assert_eq!(learner.shared.metrics.fragments.get(), queue as u64);
+    assert_eq!(learner.shared.metrics.ingest.fragments.get(), queue as u64);
 
     // A slow learner: every fragment arrives, in order, none rejected or dropped.
     let mut received = Vec::new();
@@ -288,9 +290,9 @@ fn a_full_learner_makes_shm_publishers_wait_and_loses_nothing() {
     assert_eq!(actor.sent(), total);
     actor.leave();
     assert_eq!(received, fragments);
-    assert_eq!(learner.shared.metrics.fragments.get(), total as u64);
+    assert_eq!(learner.shared.metrics.ingest.fragments.get(), total as u64);
     assert_eq!(
-        learner.shared.metrics.agent_steps_accepted.get(),
+        learner.shared.metrics.ingest.agent_steps_accepted.get(),
         fragments
             .iter()
             .map(|f| f.agent_steps() as u64)
@@ -338,9 +340,9 @@ fn other_layout_versions_and_broken_buffers_are_refused_counted_and_survived() {
     assert_eq!(learner.rejected("decode"), 1);
     assert_eq!(learner.rejected("scenario"), 1);
     assert_eq!(learner.rejected("non_finite"), 1);
-    assert_eq!(learner.shared.metrics.fragments.get(), 1);
+    assert_eq!(learner.shared.metrics.ingest.fragments.get(), 1);
     assert_eq!(
-        learner.shared.metrics.agent_steps_accepted.get(),
+        learner.shared.metrics.ingest.agent_steps_accepted.get(),
         fragment.agent_steps() as u64
     );
     let all_bytes = [other_version, truncated, other_scenario, nan, valid]
@@ -379,8 +381,8 @@ fn a_closed_queue_accepts_nothing_over_either_transport() {
     assert_eq!(status.code(), tonic::Code::Unavailable, "{status:?}");
 
     let metrics = &learner.shared.metrics;
-    assert_eq!(metrics.fragments.get(), 0);
-    assert_eq!(metrics.agent_steps_accepted.get(), 0);
+    assert_eq!(metrics.ingest.fragments.get(), 0);
+    assert_eq!(metrics.ingest.agent_steps_accepted.get(), 0);
     // Not accepted, and not the data's fault either.
     assert!(
         junction_common::fragment::FragmentError::REASONS
@@ -410,7 +412,7 @@ fn copo_runs_take_fragments_with_the_lcf_column_over_shm() {
     assert_eq!(arrived, fragment);
     // A fragment without the LCF column does not fit the run.
     assert_eq!(learner.rejected("shape"), 1);
-    assert_eq!(learner.shared.metrics.fragments.get(), 1);
+    assert_eq!(learner.shared.metrics.ingest.fragments.get(), 1);
 }
 
 #[test]

@@ -171,12 +171,12 @@ impl LearnerApp {
             "curriculum stage"
         );
         let metrics = LearnerMetrics::new().context("registering metrics")?;
-        metrics.policy_version.set(progress.version as i64);
-        metrics.record_stage(stage);
+        metrics.update.policy_version.set(progress.version as i64);
+        metrics.curriculum.record_stage(stage);
         let registry = metrics.registry.clone();
         let initial = weights_message(algorithm.as_ref(), progress.version, stage.agents, false)?;
-        let refused = metrics.requests_refused.clone();
-        let restarts = metrics.local_actor_restarts.clone();
+        let refused = metrics.ingest.requests_refused.clone();
+        let restarts = metrics.local_actors.restarts.clone();
         let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
         shared.continue_actor_ids(start.actors_registered);
         let tls = security::server_tls(&config.server).context("[server] TLS settings")?;

@@ -166,6 +166,7 @@ impl Trainer {
                 .block_on(tokio::time::timeout(POLL, self.queue.recv()));
             self.shared
                 .metrics
+                .ingest
                 .queue_fragments
                 .set(self.queue.len() as i64);
             match received {
@@ -175,12 +176,16 @@ impl Trainer {
                     // Both directions: a fragment from a *newer* version comes from a learner
                     // that died after its last checkpoint; its weights are as far from ours.
                     let lag = self.progress.version.abs_diff(fragment.behaviour_version);
-                    metrics.policy_lag.observe(lag as f64);
+                    metrics.ingest.policy_lag.observe(lag as f64);
                     if lag > config.learner.max_policy_lag {
-                        metrics.record_drop(DROP_STALE, std::slice::from_ref(&fragment));
+                        metrics
+                            .ingest
+                            .record_drop(DROP_STALE, std::slice::from_ref(&fragment));
                         tracing::debug!(lag, actor = %fragment.actor_id, "dropped stale fragment");
                     } else if let Some(reason) = self.algorithm.refusal(&fragment) {
-                        metrics.record_drop(reason, std::slice::from_ref(&fragment));
+                        metrics
+                            .ingest
+                            .record_drop(reason, std::slice::from_ref(&fragment));
                         if refusals_logged.insert(reason) {
                             tracing::warn!(
                                 reason,
@@ -229,7 +234,7 @@ impl Trainer {
             self.observe(&fragment, &mut reporter, &mut window);
             pending.push(fragment);
         }
-        self.shared.metrics.queue_fragments.set(0);
+        self.shared.metrics.ingest.queue_fragments.set(0);
         if !pending.is_empty() {
             tracing::info!(
                 fragments = pending.len(),
@@ -239,7 +244,10 @@ impl Trainer {
                     .sum::<usize>(),
                 "run ended with fragments short of a batch: counted as dropped (shutdown)"
             );
-            self.shared.metrics.record_drop(DROP_SHUTDOWN, &pending);
+            self.shared
+                .metrics
+                .ingest
+                .record_drop(DROP_SHUTDOWN, &pending);
         }
         self.report(&mut reporter, &window)?;
         if let Some(lcf) = &reporter.lcf {
@@ -270,6 +278,7 @@ impl Trainer {
         reporter.scenes.record(&fragment.scene_episodes);
         self.shared
             .metrics
+            .episodes
             .record_fragment(&self.shared.config.scenario.name, fragment);
     }
 
@@ -296,7 +305,10 @@ impl Trainer {
             Ok(stats) => stats,
             Err(e) => {
                 tracing::warn!(error = %e, "update skipped; its fragments are counted as dropped (update_failed)");
-                self.shared.metrics.record_drop(DROP_UPDATE_FAILED, batch);
+                self.shared
+                    .metrics
+                    .ingest
+                    .record_drop(DROP_UPDATE_FAILED, batch);
                 return Ok(None);
             }
         };
@@ -305,13 +317,13 @@ impl Trainer {
         let agent_steps: u64 = batch.iter().map(|f| f.agent_steps() as u64).sum();
         self.progress.env_steps += env_steps;
         self.progress.agent_steps += agent_steps;
-        self.shared.metrics.env_steps.inc_by(env_steps);
-        self.shared.metrics.agent_steps.inc_by(agent_steps);
+        self.shared.metrics.update.env_steps.inc_by(env_steps);
+        self.shared.metrics.update.agent_steps.inc_by(agent_steps);
         self.progress.version += 1;
         self.progress.updates += 1;
         self.progress.samples_trained += stats.samples_trained as u64;
         self.shared.metrics.record_update(&stats, seconds);
-        self.shared.metrics.record_trained_lags(&lags);
+        self.shared.metrics.update.record_trained_lags(&lags);
         self.advance_stage();
         let message = weights_message(
             self.algorithm.as_ref(),
@@ -322,6 +334,7 @@ impl Trainer {
         self.shared.weights.send_replace(Arc::new(message));
         self.shared
             .metrics
+            .update
             .policy_version
             .set(self.progress.version as i64);
         log_update(&stats, seconds);
@@ -366,7 +379,7 @@ impl Trainer {
                 "curriculum stage changed"
             );
             self.stage = stage;
-            self.shared.metrics.record_stage(stage);
+            self.shared.metrics.curriculum.record_stage(stage);
         }
     }
 
@@ -408,9 +421,15 @@ impl Trainer {
         let summary = window.summary();
         let scenes = reporter.scenes.summary();
         let scenario = &self.shared.config.scenario.name;
-        self.shared.metrics.record_window(scenario, &summary);
-        self.shared.metrics.record_scene_window(scenario, &scenes);
-        let actors = self.shared.metrics.connected_actors.get();
+        self.shared
+            .metrics
+            .episodes
+            .record_window(scenario, &summary);
+        self.shared
+            .metrics
+            .episodes
+            .record_scene_window(scenario, &scenes);
+        let actors = self.shared.metrics.ingest.connected_actors.get();
         tracing::info!(
             version = self.progress.version,
             agent_steps_per_s = format!("{rate:.0}"),
@@ -445,10 +464,11 @@ impl Trainer {
             collisions_total: reporter.collisions,
             sim_seconds_total: reporter.sim_seconds,
             update_seconds_total: reporter.update_seconds,
-            accepted_agent_steps: self.shared.metrics.agent_steps_accepted.get(),
+            accepted_agent_steps: self.shared.metrics.ingest.agent_steps_accepted.get(),
             dropped_agent_steps: self
                 .shared
                 .metrics
+                .ingest
                 .dropped_agent_steps()
                 .into_iter()
                 .map(|(reason, steps)| (reason.to_string(), steps))
@@ -657,9 +677,14 @@ mod tests {
         let progress = trainer.run().unwrap();
         filler.join().unwrap();
         let m = &shared.metrics;
-        let dropped = |reason: &str| m.agent_steps_dropped.with_label_values(&[reason]).get();
+        let dropped = |reason: &str| {
+            m.ingest
+                .agent_steps_dropped
+                .with_label_values(&[reason])
+                .get()
+        };
         assert_eq!((progress.version, progress.agent_steps), (1, 2 * (3 + 2)));
-        assert_eq!(m.agent_steps.get(), 10);
+        assert_eq!(m.update.agent_steps.get(), 10);
         assert_eq!(dropped(DROP_STALE), 2 * 4);
         assert_eq!(dropped(DROP_SHUTDOWN), 2 * (1 + 5 + 3));
         assert_eq!(dropped(DROP_UPDATE_FAILED), 0);
@@ -669,11 +694,12 @@ mod tests {
             .map(|f| f.agent_steps() as u64)
             .sum();
         assert_eq!(
-            m.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN),
+            m.update.agent_steps.get() + dropped(DROP_STALE) + dropped(DROP_SHUTDOWN),
             total
         );
         assert_eq!(
-            m.fragments_dropped
+            m.ingest
+                .fragments_dropped
                 .with_label_values(&[DROP_SHUTDOWN])
                 .get(),
             3

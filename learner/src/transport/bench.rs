@@ -164,7 +164,13 @@ impl Receiver {
         let rejected: u64 = FragmentError::REASONS
             .iter()
             .chain(&[REJECT_DECODE, REJECT_SCENARIO])
-            .map(|r| metrics.fragments_rejected.with_label_values(&[r]).get())
+            .map(|r| {
+                metrics
+                    .ingest
+                    .fragments_rejected
+                    .with_label_values(&[r])
+                    .get()
+            })
             .sum();
         drop(self.ingest);
         let received = self

@@ -62,7 +62,7 @@ impl Learner for LearnerService {
     ) -> Result<Response<proto::PushSummary>, Status> {
         let shared = &self.shared;
         let _slot = shared.rollout_stream_slot()?;
-        let _connected = ConnectedGuard::new(&shared.metrics.connected_actors);
+        let _connected = ConnectedGuard::new(&shared.metrics.ingest.connected_actors);
         let mut stream = request.into_inner();
         let mut summary = proto::PushSummary::default();
         let dims = Some(self.ingest.dims());
@@ -148,7 +148,7 @@ impl Learner for LearnerService {
         _request: Request<proto::StatusRequest>,
     ) -> Result<Response<proto::StatusReply>, Status> {
         let mut reply = self.shared.status.lock().map(|s| *s).unwrap_or_default();
-        reply.connected_actors = self.shared.metrics.connected_actors.get().max(0) as u32;
+        reply.connected_actors = self.shared.metrics.ingest.connected_actors.get().max(0) as u32;
         Ok(Response::new(reply))
     }
 }

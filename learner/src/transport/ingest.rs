@@ -76,6 +76,7 @@ impl Ingest {
     ) -> Result<RolloutFragment, Rejection> {
         let metrics = &self.shared.metrics;
         metrics
+            .ingest
             .transport_bytes
             .with_label_values(&[transport])
             .inc_by(bytes as u64);
@@ -124,8 +125,8 @@ impl Ingest {
 
     fn count_accepted(&self, agent_steps: u64) {
         let metrics = &self.shared.metrics;
-        metrics.fragments.inc();
-        metrics.agent_steps_accepted.inc_by(agent_steps);
+        metrics.ingest.fragments.inc();
+        metrics.ingest.agent_steps_accepted.inc_by(agent_steps);
     }
 
     pub fn shared(&self) -> &Arc<Shared> {

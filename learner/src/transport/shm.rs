@@ -220,7 +220,7 @@ fn serve(ports: &Ports, ingest: &Ingest, stop: &AtomicBool) {
             // Actors killed without a goodbye leave their ports behind until someone cleans up.
             ports.fragments.try_cleanup_dead_nodes();
             let now = ports.fragments.dynamic_config().number_of_publishers() as i64;
-            shared.metrics.connected_actors.add(now - connected);
+            shared.metrics.ingest.connected_actors.add(now - connected);
             connected = now;
         }
 
@@ -231,7 +231,7 @@ fn serve(ports: &Ports, ingest: &Ingest, stop: &AtomicBool) {
             std::thread::sleep(idle_sleep);
         }
     }
-    shared.metrics.connected_actors.sub(connected);
+    shared.metrics.ingest.connected_actors.sub(connected);
 }
 
 /// The encoded `RegisterReply` to an encoded `RegisterRequest`: the run configuration, or a
