@@ -12,7 +12,7 @@
 //!    and [`LearnerApp::metrics_addr`] say where.
 //! 3. [`LearnerApp::run`]: trains ([`Trainer::run`]) until the budget is spent, every sender
 //!    is gone or [`StopHandle::stop`] is called, then tears everything down in one place
-//!    ([`Servers::shutdown`]) and returns the final [`Progress`].
+//!    (`Servers::shutdown`, below) and returns the final [`Progress`].
 //!
 //! Signals, the exit code and the configuration layers stay in the binary (`main.rs`).
 
@@ -327,7 +327,7 @@ impl LearnerApp {
 
     /// Trains until the budget is spent, a stop is requested or every sender is gone (the
     /// trainer then writes a last checkpoint and tells actors the run is over), then stops
-    /// the servers ([`Servers::shutdown`]); returns the final progress, or the training
+    /// the servers (`Servers::shutdown`, in its documented order); returns the final progress, or the training
     /// error once everything has stopped.
     pub async fn run(self) -> anyhow::Result<Progress> {
         let LearnerApp {

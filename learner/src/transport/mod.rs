@@ -4,7 +4,7 @@
 //! - [`grpc`]: the tonic service (`Register`, `PushRollouts`, `WatchPolicy`, `Status`);
 //! - [`shm`]: the iceoryx2 shared-memory server for actors on this host;
 //! - [`security`]: TLS and the shared-token check in front of the gRPC service;
-//! - [`bench`]: `learner bench-transport`, each transport's throughput through the same path.
+//! - [`bench`](mod@bench): `learner bench-transport`, each transport's throughput through the same path.
 
 pub mod bench;
 pub mod grpc;
