@@ -220,7 +220,8 @@ pub mod elementwise {
     static AVX2: LazyLock<bool> = LazyLock::new(|| {
         #[cfg(target_arch = "x86_64")]
         {
-            std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+            std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
@@ -235,7 +236,9 @@ pub mod elementwise {
             // SAFETY: the CPU has AVX2 and FMA (checked above).
             return unsafe { tanh_avx2(values) };
         }
-        values.iter_mut().for_each(|x| *x = tanh_with::<Separate>(*x));
+        values
+            .iter_mut()
+            .for_each(|x| *x = tanh_with::<Separate>(*x));
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -251,17 +254,13 @@ pub mod elementwise {
             // SAFETY: as in `tanh`.
             return unsafe { tanh_grad_avx2(grad, h) };
         }
-        grad.iter_mut()
-            .zip(h)
-            .for_each(|(g, h)| *g *= 1.0 - h * h);
+        grad.iter_mut().zip(h).for_each(|(g, h)| *g *= 1.0 - h * h);
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn tanh_grad_avx2(grad: &mut [f32], h: &[f32]) {
-        grad.iter_mut()
-            .zip(h)
-            .for_each(|(g, h)| *g *= 1.0 - h * h);
+        grad.iter_mut().zip(h).for_each(|(g, h)| *g *= 1.0 - h * h);
     }
 
     /// a·b + c, fused into one rounding where the code is compiled with FMA (a call to a slow
@@ -372,7 +371,9 @@ mod tests {
         assert!(elementwise::tanh_f32(f32::NAN).is_nan());
         // The slice version (vectorised, with fused multiply-adds where the CPU has them) is
         // as close.
-        let inputs: Vec<f32> = (0..100_001).map(|i| (i as f32 - 50_000.0) * 2.1e-4).collect();
+        let inputs: Vec<f32> = (0..100_001)
+            .map(|i| (i as f32 - 50_000.0) * 2.1e-4)
+            .collect();
         let mut values = inputs.clone();
         elementwise::tanh(&mut values);
         for (x, y) in inputs.iter().zip(&values) {
@@ -401,7 +402,11 @@ mod tests {
         }
         let pass = mlp.forward_pass(&x);
         assert!(
-            (&pass.output - mlp.forward(&x)).abs().max().double_value(&[]) < 1e-6,
+            (&pass.output - mlp.forward(&x))
+                .abs()
+                .max()
+                .double_value(&[])
+                < 1e-6,
             "the two forward passes agree"
         );
         loss_of(&pass.output).backward();
@@ -429,6 +434,10 @@ mod tests {
         let bias_grad = |vs: &nn::VarStore| vs.variables()["m.l1.bias"].grad().double_value(&[0]);
         assert_eq!(bias_grad(&vs), 1.0, "d(sum of outputs)/d(output bias) = 1");
         run();
-        assert_eq!(bias_grad(&vs), 2.0, "a second pass accumulates, as autograd does");
+        assert_eq!(
+            bias_grad(&vs),
+            2.0,
+            "a second pass accumulates, as autograd does"
+        );
     }
 }

@@ -6,9 +6,7 @@
 use crate::config::ConfigError;
 
 /// (name, TOML) of every shipped preset.
-pub const SHIPPED: &[(&str, &str)] = &[
-    ("gpu", include_str!("../../presets/gpu.toml")),
-];
+pub const SHIPPED: &[(&str, &str)] = &[("gpu", include_str!("../../presets/gpu.toml"))];
 
 /// The TOML of a shipped preset.
 pub fn text(name: &str) -> Result<&'static str, ConfigError> {
@@ -38,7 +36,10 @@ mod tests {
             let config = RunConfig::from_layers(&[Layer::Preset(name)])
                 .unwrap_or_else(|e| panic!("preset {name}: {e}"));
             assert_ne!(config, defaults, "preset {name} changes something");
-            assert_eq!(config.scenario, defaults.scenario, "preset {name} keeps the task");
+            assert_eq!(
+                config.scenario, defaults.scenario,
+                "preset {name} keeps the task"
+            );
             let lines: Vec<&str> = text.lines().collect();
             for (i, line) in lines.iter().enumerate() {
                 let key = line.trim();
@@ -46,7 +47,9 @@ mod tests {
                     continue;
                 }
                 assert!(
-                    lines[..i].last().is_some_and(|l| l.trim_start().starts_with('#')),
+                    lines[..i]
+                        .last()
+                        .is_some_and(|l| l.trim_start().starts_with('#')),
                     "preset {name}: {key:?} has no comment above it"
                 );
             }

@@ -48,9 +48,10 @@ impl Adam {
             let mut offset = 0;
             for p in &params {
                 let (len, shape) = (p.numel() as i64, p.size());
-                let stretch = |buffer: &Tensor| buffer.narrow(0, offset, len).view(shape.as_slice());
+                let stretch =
+                    |buffer: &Tensor| buffer.narrow(0, offset, len).view(shape.as_slice());
                 let value = stretch(&values);
-                let _ = value.shallow_clone().copy_(p);
+                value.shallow_clone().copy_(p);
                 p.shallow_clone().set_data(&value);
                 p.grad().set_data(&stretch(&grads));
                 offset += len;
@@ -166,7 +167,8 @@ impl Adam {
             self.per_parameter(&self.second_moment),
         );
         tch::no_grad(|| {
-            for ((m, v), (mut m_to, mut v_to)) in moments.iter().zip(first.into_iter().zip(second)) {
+            for ((m, v), (mut m_to, mut v_to)) in moments.iter().zip(first.into_iter().zip(second))
+            {
                 m_to.copy_(m);
                 v_to.copy_(v);
             }

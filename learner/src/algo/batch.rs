@@ -343,7 +343,10 @@ pub fn prioritised_order(
         .map(|&i| (len as f64 * priorities[i as usize] / total).powf(-beta))
         .collect();
     let largest = weights.iter().copied().fold(f64::MIN_POSITIVE, f64::max);
-    (order, weights.iter().map(|w| (w / largest) as f32).collect())
+    (
+        order,
+        weights.iter().map(|w| (w / largest) as f32).collect(),
+    )
 }
 
 /// Zero mean, unit variance (per minibatch, as in well-tuned PPO implementations).
@@ -387,16 +390,26 @@ mod tests {
             }
         }
         let share = |row: usize| counts[row] as f64 / draws as f64;
-        assert_eq!(counts[0], 0, "a row without advantage is (almost) never drawn");
+        assert_eq!(
+            counts[0], 0,
+            "a row without advantage is (almost) never drawn"
+        );
         for (row, expected) in [(1, 1.0 / 6.0), (2, 2.0 / 6.0), (3, 3.0 / 6.0)] {
-            assert!((share(row) - expected).abs() < 0.01, "row {row}: {}", share(row));
+            assert!(
+                (share(row) - expected).abs() < 0.01,
+                "row {row}: {}",
+                share(row)
+            );
         }
         // Full correction: weight ∝ 1/P, the rarest drawn row's weight the largest (1).
         assert!((weight_of[1] - 1.0).abs() < 1e-6);
         assert!((weight_of[3] - 1.0 / 3.0).abs() < 1e-4, "{weight_of:?}");
         // α = 0: uniform draws, every weight 1.
         let (_, weights) = prioritised_order(&advantages, 0.0, 1.0, &mut rng);
-        assert!(weights.iter().all(|&w| (w - 1.0).abs() < 1e-6), "{weights:?}");
+        assert!(
+            weights.iter().all(|&w| (w - 1.0).abs() < 1e-6),
+            "{weights:?}"
+        );
         // β = 0: no correction.
         let (_, weights) = prioritised_order(&advantages, 1.0, 0.0, &mut rng);
         assert!(weights.iter().all(|&w| w == 1.0), "{weights:?}");

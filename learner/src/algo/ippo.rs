@@ -103,7 +103,11 @@ mod tests {
         for round in 0..30 {
             let fragment = bandit_fragment(algo.policy(), round);
             let stats = algo.update(&[fragment]).unwrap();
-            assert_eq!(stats.samples_trained, 64 * run.ppo.epochs, "a draw of 64 per epoch");
+            assert_eq!(
+                stats.samples_trained,
+                64 * run.ppo.epochs,
+                "a draw of 64 per epoch"
+            );
             assert!(stats.policy_loss.is_finite());
         }
         let end = mean_action(algo.policy());

@@ -38,8 +38,8 @@ use junction_common::policy::{
 use junction_common::weights::{self, Decoded, WeightsError};
 
 use super::batch::{
-    CriticInput, Head, TrainBatch, alive_observations, assemble, epoch_order,
-    explained_variance, prioritised_order, standardize,
+    CriticInput, Head, TrainBatch, alive_observations, assemble, epoch_order, explained_variance,
+    prioritised_order, standardize,
 };
 use super::coordination::{Coordination, MetaStep};
 use super::ppo::{decoupled_surrogate, value_loss, weighted_clipped_surrogate};
@@ -132,7 +132,9 @@ impl<C: CriticInput> SharedPpo<C> {
             critics,
             adam,
             kl_coef: config.kl_coef,
-            parallel: run.learner.split_update && device == Device::Cpu && tch::get_num_threads() >= 2,
+            parallel: run.learner.split_update
+                && device == Device::Cpu
+                && tch::get_num_threads() >= 2,
             seed: run.run.seed,
             updates: 0,
         }
@@ -301,7 +303,9 @@ impl<C: CriticInput> SharedPpo<C> {
                 });
                 let policy = self.policy_loss_and_gradients(mb, objective, phases);
                 let waited = Instant::now();
-                let value = value.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                let value = value
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
                 phases.add("wait for the value part", waited.elapsed().as_secs_f64());
                 (policy, value)
             })
@@ -348,7 +352,9 @@ impl<C: CriticInput> SharedPpo<C> {
             }
         };
         // The network's pass: its gradients are taken by hand after the loss's (mlp.rs).
-        let pass = phases.time("policy: network forward", || self.policy.forward_pass(&mb.obs));
+        let pass = phases.time("policy: network forward", || {
+            self.policy.forward_pass(&mb.obs)
+        });
         let started = Instant::now();
         let (mean, log_std) = self.policy.head(&pass.output);
         let log_probs = gaussian_log_prob(&mean, &log_std, &mb.actions);
@@ -511,9 +517,8 @@ impl Rows {
     fn epoch(&self, rng: &mut ChaCha8Rng, ppo: &PpoConfig) -> Result<Rows, tch::TchError> {
         let device = self.obs.device();
         let (order, weights) = if ppo.advantage_priority > 0.0 {
-            let advantages = Vec::<f32>::try_from(
-                self.advantages.to_device(Device::Cpu).to_kind(Kind::Float),
-            )?;
+            let advantages =
+                Vec::<f32>::try_from(self.advantages.to_device(Device::Cpu).to_kind(Kind::Float))?;
             let (order, weights) = prioritised_order(
                 &advantages,
                 ppo.advantage_priority,
