@@ -12,6 +12,9 @@ measures a window and prints one JSON object:
   learner_utilisation      update time / wall time (junction_learner_update_duration_seconds_sum)
   actor_transport_share    transport seconds / (inference + simulation + transport) seconds
   actor_transport_cpu_share  transport seconds / the actor processes' CPU seconds (/proc)
+  actor_inference_share, actor_simulation_share  the actor loop's busy time by part
+  actor_busy_us_per_agent_step, actor_cpu_us_per_agent_step  the loop's cost per agent-step
+                           produced (junction_actor_agent_steps_total)
 
   scripts/bench-local.py [--actors 2] [--warmup 60] [--seconds 240] [-- extra learner flags]
 Needs `make build` first. Stops the learner with SIGTERM at the end (its actors follow).
@@ -160,9 +163,10 @@ def main():
         )
 
     transport = actor_delta("junction_actor_transport_seconds_total")
-    busy = transport + actor_delta("junction_actor_inference_seconds_total") + actor_delta(
-        "junction_actor_simulation_seconds_total"
-    )
+    inference = actor_delta("junction_actor_inference_seconds_total")
+    simulation = actor_delta("junction_actor_simulation_seconds_total")
+    busy = transport + inference + simulation
+    produced = actor_delta("junction_actor_agent_steps_total")
     lag = "junction_learner_policy_lag_versions"
     trained = "junction_learner_trained_policy_lag_versions"
     report = {
@@ -185,6 +189,13 @@ def main():
         "actor_transport_cpu_share": round(
             transport / (after["actor_cpu"] - before["actor_cpu"]), 4
         ) if after["actor_cpu"] > before["actor_cpu"] else None,
+        # The actor loop: where its busy time goes, and its cost per agent-step produced.
+        "actor_inference_share": round(inference / busy, 4) if busy else None,
+        "actor_simulation_share": round(simulation / busy, 4) if busy else None,
+        "actor_busy_us_per_agent_step": round(busy / produced * 1e6, 2) if produced else None,
+        "actor_cpu_us_per_agent_step": round(
+            (after["actor_cpu"] - before["actor_cpu"]) / produced * 1e6, 2
+        ) if produced else None,
         "restarts": total(after["learner"], "junction_learner_local_actor_restarts_total"),
         "run_dir": run_dir,
     }
