@@ -22,6 +22,8 @@
 #                    --actions sample`, written beside it as eval-<scenario>-seed<S>-sample.*;
 #                    the report tables the mean action's) [1]
 #   SCENARIO         scenario name or file [intersection]
+#   PRESET           a shipped preset the arms start from (`learner serve --preset`) [none:
+#                    the defaults]
 #   BIN              binaries [target/release]
 #   FROM             a runs directory of an earlier ablation with the same arm names: each run
 #                    starts as a copy of FROM/<arm>-s<seed> (its evaluation left behind) and
@@ -46,6 +48,7 @@ EVAL_SEED=${EVAL_SEED:-777}
 EVAL_SAMPLED=${EVAL_SAMPLED:-1}
 SCENARIO=${SCENARIO:-intersection}
 FROM=${FROM:-}
+PRESET=${PRESET:-}
 
 say() { echo "ablation: $(date +%H:%M:%S) $*"; }
 [ -f "$ARMS" ] || { say "no arms file $ARMS" >&2; exit 1; }
@@ -98,7 +101,7 @@ for seed in $SEEDS; do
         say "$name seed $seed: training (${flags[$i]:-defaults})$continuing"
         # shellcheck disable=SC2086 # the arm's flags are a list of flags
         RUN_DIR="$run_dir" RESUME="$resume" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
-            nice scripts/run-local.sh --scenario "$SCENARIO" --seed "$seed" \
+            PRESET="$PRESET" nice scripts/run-local.sh --scenario "$SCENARIO" --seed "$seed" \
             --set "run.max_agent_steps=$BUDGET" --set "run.progress_interval_s=5" \
             ${flags[$i]} >>"$run_dir/train.log" 2>&1
         status=$?

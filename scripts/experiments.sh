@@ -80,8 +80,9 @@ method_flags() {
 launch_run() {
     local run_dir=$1 method=$2 scene=$3 seed=$4 continuing=$5
     # shellcheck disable=SC2046,SC2086 # the flag variables are lists of flags
+    # The grid trains at the defaults (no preset): it is compared per agent-step.
     RUN_DIR="$run_dir" RESUME="$continuing" ACTORS="$ACTORS" MAX_SECONDS="$MAX_RUN_SECONDS" BIN="$BIN" \
-        scripts/run-local.sh --scenario "$scene" --seed "$seed" \
+        PRESET= scripts/run-local.sh --scenario "$scene" --seed "$seed" \
         --set "learner.algo=\"$method\"" \
         --set "run.max_agent_steps=$BUDGET" \
         --set "run.progress_interval_s=$PROGRESS_S" \

@@ -6,7 +6,10 @@
 use crate::config::ConfigError;
 
 /// (name, TOML) of every shipped preset.
-pub const SHIPPED: &[(&str, &str)] = &[("gpu", include_str!("../../presets/gpu.toml"))];
+pub const SHIPPED: &[(&str, &str)] = &[
+    ("fast", include_str!("../../presets/fast.toml")),
+    ("gpu", include_str!("../../presets/gpu.toml")),
+];
 
 /// The TOML of a shipped preset.
 pub fn text(name: &str) -> Result<&'static str, ConfigError> {
@@ -61,7 +64,7 @@ mod tests {
         let error = RunConfig::from_layers(&[Layer::Preset("turbo")]).unwrap_err();
         assert_eq!(
             error.to_string(),
-            "unknown preset \"turbo\" (shipped presets: gpu)"
+            "unknown preset \"turbo\" (shipped presets: fast, gpu)"
         );
     }
 }

@@ -75,8 +75,9 @@ struct BenchArgs {
 
 #[derive(Args)]
 struct ConfigSource {
-    /// A shipped preset applied over the defaults, before everything else: gpu (one GPU
-    /// with many local actors). `learner config --preset NAME` prints it applied;
+    /// A shipped preset applied over the defaults, before everything else: fast (what
+    /// `make run` trains with: one pass over large minibatches, the shortest wall-clock to a
+    /// driving policy on two cores) or gpu (one GPU fed by many local actors). `learner config --preset NAME` prints it applied;
     /// docs/CONFIGURATION.md says what each holds and why.
     #[arg(long, value_name = "NAME")]
     preset: Option<String>,
