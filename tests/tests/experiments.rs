@@ -99,7 +99,7 @@ fn an_ablation_trains_evaluates_and_continues_a_stopped_run_from_its_checkpoint(
     );
     assert!(eval.is_file(), "{log}");
     let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
-    assert!(train_log.contains("learner: resumed path="), "{train_log}");
+    assert!(train_log.contains("run_dir: resumed path="), "{train_log}");
     assert_eq!(train_log.matches("run-local: ").count(), 2, "{train_log}");
 
     // Evaluated: kept as it is.
@@ -196,7 +196,7 @@ fn the_grid_trains_evaluates_reports_and_resumes() {
     );
     assert!(run.join("eval/eval-tiny-straight-seed1000.json").is_file());
     let train_log = std::fs::read_to_string(run.join("train.log")).unwrap();
-    assert!(train_log.contains("learner: resumed path="), "{train_log}");
+    assert!(train_log.contains("run_dir: resumed path="), "{train_log}");
 
     // Seeds added later live in another OUT: grid-tables.py reads both as one grid
     // (`header` is the grid.tsv header read above).
