@@ -33,7 +33,6 @@ stream training never draws from (`actor eval --help`), and it should not be one
 """
 import argparse
 import json
-import math
 import os
 import shutil
 import signal
@@ -147,7 +146,9 @@ def measure(args, seed, extra):
         "process_seconds": round(wall, 1),
         "updates_per_s": round(last["updates"] / elapsed, 4),
         "agent_steps_per_s": round(last["agent_steps"] / elapsed),
-        "learner_utilisation": round(last.get("update_seconds_total", math.nan) / elapsed, 3),
+        # Learners before update_seconds_total existed leave it out: null.
+        "learner_utilisation": (round(last["update_seconds_total"] / elapsed, 3)
+                                if "update_seconds_total" in last else None),
     }
     result_file.write_text(json.dumps(result) + "\n")
     return result

@@ -6,7 +6,7 @@
 // The pure part lives in `junction-core` (so the simulator builds without libtorch); its
 // modules are part of this crate's vocabulary under the same names.
 pub use junction_core::{
-    action_grid, confidence, config, episode, evaluation, lcf_inputs, scenarios, spec,
+    action_grid, activation, confidence, config, episode, evaluation, lcf_inputs, scenarios, spec,
 };
 
 pub mod auth;

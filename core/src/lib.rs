@@ -5,6 +5,7 @@
 //! `junction-common` re-exports every module, so the rest of the code names them from there.
 
 pub mod action_grid;
+pub mod activation;
 pub mod confidence;
 pub mod config;
 pub mod episode;

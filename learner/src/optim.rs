@@ -8,7 +8,7 @@
 
 use tch::{Device, Kind, Tensor};
 
-use junction_common::mlp::elementwise;
+use junction_common::activation;
 use junction_common::weights::{Decoded, WeightsError};
 
 pub struct Adam {
@@ -223,7 +223,7 @@ impl AdamStep {
     /// in one pass (eight values at a time where the CPU has AVX2; the same arithmetic).
     fn apply(&self, values: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
-        if elementwise::avx2_fma() {
+        if activation::avx2_fma() {
             // SAFETY: the CPU has AVX2 and FMA.
             return unsafe { self.apply_avx2(values, grads, m, v) };
         }

@@ -4,7 +4,8 @@ included, acting exactly as the Rust actor does.
 
 The Rust actor's behaviour, reproduced op for op: observations normalised as
 `clamp((obs − mean) / sqrt(var + 1e-8), −10, 10)`; the mean action from an MLP with tanh
-hidden layers, which with a state-dependent std (`action_std = "state"` in the blob's
+hidden layers (the Rust tanh itself, `junction._native.tanh_`: `torch.tanh` differs in the
+last bit), which with a state-dependent std (`action_std = "state"` in the blob's
 metadata) also outputs a log-std offset added to the learned `policy_log_std`; the action
 `mean + exp(log_std) · noise` with standard-normal noise, *not*
 clipped (the simulator clips what it applies, the fragment ships the action itself); and its
@@ -21,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from . import _native
 
 #: The observation layout this package builds observations in (`spec::OBS_LAYOUT_VERSION`).
 OBS_LAYOUT_VERSION = 1
@@ -137,7 +140,8 @@ class GaussianPolicy:
         for i, (w, b) in enumerate(self.layers):
             h = torch.nn.functional.linear(h, w, b)
             if i != last:
-                h = torch.tanh(h)
+                h = h.contiguous()
+                _native.tanh_(h.numpy())
         if self.state_std:
             a = self.action_dim
             return h[:, :a], h[:, a:] + self.log_std

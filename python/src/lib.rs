@@ -2,15 +2,19 @@
 //! GIL released and hand back whole NumPy arrays per step (one copy out of the scenes' own
 //! buffers, no Python object per agent); the Python package (`python/junction`) builds the
 //! PettingZoo, Gymnasium and vector environments on top. Also here: scenario loading with
-//! `--set`'s names and errors, LCF neighbourhoods for the MetaDrive actor, and the evaluation
-//! report `actor eval` writes.
+//! `--set`'s names and errors, LCF neighbourhoods for the MetaDrive actor, the evaluation
+//! report `actor eval` writes, and the policy network's tanh (`junction.policy`).
 
 use numpy::ndarray::{Array2, Array3};
-use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2, PyReadwriteArrayDyn,
+    PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
+use junction_core::activation;
 use junction_core::config::{ConfigError as RustConfigError, Layer, RunConfig, ScenarioConfig};
 use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
 use junction_core::evaluation::{EVAL_FORMAT, EvalActions, EvalReport, EvalTally, TrainingInfo};
@@ -627,6 +631,18 @@ fn eval_report(
     Ok((json + "\n", report.to_csv(), report.to_table()))
 }
 
+/// Each value of a contiguous float32 array replaced by its tanh, in place: the policy
+/// network's activation exactly as the Rust actor and learner compute it, which `torch.tanh`
+/// is not to the last bit.
+#[pyfunction]
+fn tanh_(mut values: PyReadwriteArrayDyn<'_, f32>) -> PyResult<()> {
+    let values = values
+        .as_slice_mut()
+        .map_err(|_| PyValueError::new_err("tanh_ needs a contiguous float32 array"))?;
+    activation::tanh(values);
+    Ok(())
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("ConfigError", m.py().get_type::<ConfigError>())?;
@@ -650,5 +666,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(neighbourhoods, m)?)?;
     m.add_function(wrap_pyfunction!(phi_observation, m)?)?;
     m.add_function(wrap_pyfunction!(eval_report, m)?)?;
+    m.add_function(wrap_pyfunction!(tanh_, m)?)?;
     Ok(())
 }

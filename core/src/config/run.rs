@@ -79,11 +79,14 @@ mod tests {
         // An agent-step budget, where there is one, is what the schedule follows.
         run.max_agent_steps = 1_000_000;
         assert_eq!(run.budget_spent(500_000, 75.0), Some(0.5));
-        let rate = LrSchedule::Linear.learning_rate(4e-4, RunSection {
-            max_agent_steps: 0,
-            ..run
-        }
-        .budget_spent(0, 150.0));
+        let rate = LrSchedule::Linear.learning_rate(
+            4e-4,
+            RunSection {
+                max_agent_steps: 0,
+                ..run
+            }
+            .budget_spent(0, 150.0),
+        );
         assert!((rate - 2e-4).abs() < 1e-12, "{rate}");
     }
 }
