@@ -153,6 +153,98 @@ fn call_failed(status: tonic::Status, what: &str, connected: bool) -> SessionEnd
     }
 }
 
+/// A failed connection or registration that is this actor's or the learner's configuration,
+/// not an outage: the learner's certificate rejected, or TLS on one side only. Retrying cannot
+/// fix these, so they end the actor at once instead of after --connect-timeout. A refused or
+/// reset connection says nothing specific and stays an outage.
+fn misconfiguration(
+    error: &(dyn std::error::Error + 'static),
+    options: &GrpcOptions,
+) -> Option<String> {
+    let mut cause = Some(error);
+    while let Some(error) = cause {
+        let problem = match rustls_error(error) {
+            Some(tls) => tls_problem(tls, options),
+            None => plain_text_to_tls(error, &options.learner),
+        };
+        if let Some(problem) = problem {
+            return Some(format!(
+                "{problem}; this is a configuration error, not an outage"
+            ));
+        }
+        cause = error.source();
+    }
+    None
+}
+
+/// An http:// URL and a learner whose first bytes back are no HTTP/2 frame: a TLS learner
+/// answers a plain-text request with a TLS alert, which reads as a frame megabytes long.
+fn plain_text_to_tls(cause: &(dyn std::error::Error + 'static), learner: &str) -> Option<String> {
+    let h2 = cause.downcast_ref::<h2::Error>()?;
+    let not_http2 =
+        h2.is_go_away() && h2.is_library() && h2.reason() == Some(h2::Reason::FRAME_SIZE_ERROR);
+    (learner.starts_with("http://") && not_http2).then(|| {
+        format!(
+            "the learner at {learner} does not speak plain-text gRPC (its reply is not HTTP/2, as from a learner with server.tls_cert): use an https:// URL and --tls-ca"
+        )
+    })
+}
+
+/// The rustls error `error` is, if any. tokio-rustls wraps it in an `io::Error`, whose
+/// `source()` skips the wrapped error, hence `get_ref`.
+fn rustls_error<'a>(error: &'a (dyn std::error::Error + 'static)) -> Option<&'a rustls::Error> {
+    error.downcast_ref::<rustls::Error>().or_else(|| {
+        error
+            .downcast_ref::<std::io::Error>()
+            .and_then(std::io::Error::get_ref)
+            .and_then(|inner| inner.downcast_ref::<rustls::Error>())
+    })
+}
+
+/// What a TLS failure says about the configuration, if it is one.
+fn tls_problem(error: &rustls::Error, options: &GrpcOptions) -> Option<String> {
+    match error {
+        rustls::Error::InvalidCertificate(reason) => Some(format!(
+            "the learner's TLS certificate was rejected ({reason}): {}",
+            certificate_fix(reason, options)
+        )),
+        rustls::Error::InvalidMessage(_) => Some(format!(
+            "the learner at {} does not speak TLS: use an http:// URL for a plain-text learner, or give the learner server.tls_cert and server.tls_key",
+            options.learner
+        )),
+        _ => None,
+    }
+}
+
+/// What to check for a learner's certificate this actor rejected.
+fn certificate_fix(reason: &rustls::CertificateError, options: &GrpcOptions) -> String {
+    use rustls::CertificateError as E;
+    let trusted = match &options.tls.ca {
+        Some(ca) => format!("--tls-ca {}", ca.display()),
+        None => "the system's trust store (pass --tls-ca)".to_string(),
+    };
+    match reason {
+        E::UnknownIssuer | E::BadSignature => format!(
+            "it is not signed by a CA in {trusted}; check --tls-ca and the learner's server.tls_cert"
+        ),
+        E::NotValidForName | E::NotValidForNameContext { .. } => format!(
+            "it is not issued for {}; pass --tls-domain with a name it is issued for, or reach the learner by that name",
+            options
+                .tls
+                .domain
+                .as_deref()
+                .unwrap_or("the host of the --learner URL")
+        ),
+        E::Expired | E::ExpiredContext { .. } | E::NotValidYet | E::NotValidYetContext { .. } => {
+            "it is out of date (or a clock is wrong); renew the learner's server.tls_cert"
+                .to_string()
+        }
+        _ => format!(
+            "the learner's server.tls_cert must be its own server certificate (not a CA's), signed by a CA in {trusted}"
+        ),
+    }
+}
+
 /// What lives across connections: the outbox, the weights the rollout thread follows, the
 /// rollout thread itself.
 struct Actor {
@@ -246,7 +338,12 @@ impl Actor {
     async fn session(&mut self, endpoint: &Endpoint) -> SessionEnd {
         let channel = match tokio::time::timeout(CALL_TIMEOUT, endpoint.connect()).await {
             Ok(Ok(channel)) => channel,
-            Ok(Err(e)) => return lost(anyhow::Error::new(e).context("connecting"), false),
+            Ok(Err(e)) => {
+                return match misconfiguration(&e, &self.grpc) {
+                    Some(problem) => SessionEnd::Fatal(anyhow::Error::new(e).context(problem)),
+                    None => lost(anyhow::Error::new(e).context("connecting"), false),
+                };
+            }
             Err(_) => return lost(anyhow::anyhow!("connecting timed out"), false),
         };
         let header = match &self.grpc.token {
@@ -271,7 +368,12 @@ impl Actor {
         };
         let reply = match tokio::time::timeout(CALL_TIMEOUT, client.register(hello)).await {
             Ok(Ok(reply)) => reply.into_inner(),
-            Ok(Err(status)) => return call_failed(status, "registering with the learner", false),
+            Ok(Err(status)) => {
+                return match misconfiguration(&status, &self.grpc) {
+                    Some(problem) => SessionEnd::Fatal(anyhow::Error::new(status).context(problem)),
+                    None => call_failed(status, "registering with the learner", false),
+                };
+            }
             Err(_) => return lost(anyhow::anyhow!("registering timed out"), false),
         };
         let registration = match Registration::check(&reply, Some(bytes)) {
@@ -530,5 +632,64 @@ async fn count_runtime_busy_time(metrics: Arc<ActorMetrics>) {
             .transport_seconds
             .inc_by(now.saturating_sub(counted).as_secs_f64());
         counted = now;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// As tonic nests the io::Error that tokio-rustls made.
+    #[derive(Debug, thiserror::Error)]
+    #[error("transport error")]
+    struct Transport(#[source] std::io::Error);
+
+    fn options(learner: &str) -> GrpcOptions {
+        GrpcOptions {
+            learner: learner.to_string(),
+            retry_initial: Duration::from_millis(100),
+            retry_max: Duration::from_secs(5),
+            max_message_bytes: 1 << 20,
+            tls: TlsOptions::default(),
+            token: None,
+        }
+    }
+
+    fn tls(error: rustls::Error) -> Transport {
+        Transport(std::io::Error::new(std::io::ErrorKind::InvalidData, error))
+    }
+
+    #[test]
+    fn rejected_certificates_and_tls_to_plain_text_are_misconfigurations() {
+        let https = options("https://learner.example:50051");
+        let rejected = tls(rustls::Error::InvalidCertificate(
+            rustls::CertificateError::UnknownIssuer,
+        ));
+        let problem = misconfiguration(&rejected, &https).expect("a misconfiguration");
+        assert!(problem.contains("UnknownIssuer"), "{problem}");
+        assert!(problem.contains("--tls-ca"), "{problem}");
+        let plain = tls(rustls::Error::InvalidMessage(
+            rustls::InvalidMessage::InvalidContentType,
+        ));
+        let problem = misconfiguration(&plain, &https).expect("a misconfiguration");
+        assert!(problem.contains("does not speak TLS"), "{problem}");
+    }
+
+    #[test]
+    fn outages_are_not_misconfigurations() {
+        let https = options("https://learner.example:50051");
+        for kind in [
+            std::io::ErrorKind::ConnectionRefused,
+            std::io::ErrorKind::ConnectionReset,
+            std::io::ErrorKind::BrokenPipe,
+            std::io::ErrorKind::TimedOut,
+        ] {
+            let outage = Transport(std::io::Error::from(kind));
+            assert_eq!(misconfiguration(&outage, &https), None, "{kind:?}");
+        }
+        let closed = tls(rustls::Error::AlertReceived(
+            rustls::AlertDescription::InternalError,
+        ));
+        assert_eq!(misconfiguration(&closed, &https), None);
     }
 }

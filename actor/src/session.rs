@@ -116,7 +116,7 @@ impl Registration {
     ) -> anyhow::Result<Self> {
         if reply.protocol_version != PROTOCOL_VERSION {
             bail!(
-                "the learner speaks protocol {}; this actor speaks {PROTOCOL_VERSION}",
+                "the learner speaks protocol {}; this actor speaks {PROTOCOL_VERSION}: run actors from the learner's Junction release",
                 reply.protocol_version
             );
         }

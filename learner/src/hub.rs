@@ -154,7 +154,9 @@ impl Shared {
 /// Why a request from an actor was refused, whatever its transport.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum Refusal {
-    #[error("protocol version {0} is not supported (this learner speaks {PROTOCOL_VERSION})")]
+    #[error(
+        "protocol version {0} is not supported (this learner speaks {PROTOCOL_VERSION}): run actors from the learner's Junction release"
+    )]
     Version(u32),
     #[error("{field} is {len} bytes long (at most {MAX_NAME_BYTES})")]
     NameTooLong { field: &'static str, len: usize },

@@ -18,7 +18,7 @@ use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity
 
 const TOKEN: &str = "test-token-0123456789abcdef";
 
-/// Writes `ca.pem`, `server.pem`/`server.key` (for localhost and 127.0.0.1) and
+/// Writes `ca.pem`/`ca.key`, `server.pem`/`server.key` (for localhost and 127.0.0.1) and
 /// `client.pem`/`client.key` into `dir`.
 fn make_certificates(dir: &Path) {
     let mut ca_params = CertificateParams::new(Vec::<String>::new()).expect("CA params");
@@ -29,8 +29,9 @@ fn make_certificates(dir: &Path) {
     ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
     let ca_key = KeyPair::generate().expect("CA key");
     let ca_cert = ca_params.self_signed(&ca_key).expect("CA certificate");
-    let issuer = Issuer::new(ca_params, ca_key);
     std::fs::write(dir.join("ca.pem"), ca_cert.pem()).expect("write CA");
+    std::fs::write(dir.join("ca.key"), ca_key.serialize_pem()).expect("write CA key");
+    let issuer = Issuer::new(ca_params, ca_key);
     for (name, names, usage) in [
         (
             "server",
@@ -304,6 +305,141 @@ fn an_actor_without_the_token_is_refused_and_says_why() {
     actor.assert_fails_saying(
         Duration::from_secs(30),
         &["Unauthenticated", "missing auth token"],
+    );
+    learner.stop(Duration::from_secs(30));
+}
+
+/// Starts a learner with `files`: `[server]` keys set to files in `dir` (none: plain text).
+fn start_learner_with_files(
+    dir: &Path,
+    label: &str,
+    files: &[(&str, &str)],
+) -> (junction_tests::Process, junction_tests::Endpoints) {
+    let sets: Vec<String> = files
+        .iter()
+        .map(|(key, file)| format!("server.{key}={:?}", dir.join(file).display().to_string()))
+        .collect();
+    let mut args = vec!["--max-seconds", "120"];
+    for set in &sets {
+        args.extend(["--set", set]);
+    }
+    start_learner_with_env(&dir.join(label), dir, &args, &[])
+}
+
+/// Runs an actor against `url` with `extra` flags and asserts that it fails within seconds,
+/// long before `--connect-timeout` (120 s), saying each of `reasons`. `at_first_attempt`: the
+/// failure is certain on every attempt, so the actor must not take it for an outage even once.
+fn assert_actor_stops_at_once(
+    dir: &Path,
+    name: &str,
+    url: &str,
+    extra: &[&str],
+    reasons: &[&str],
+    at_first_attempt: bool,
+) {
+    let mut args = vec![
+        "--learner".to_string(),
+        url.to_string(),
+        "--connect-timeout".to_string(),
+        "120".to_string(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    let mut actor = junction_tests::Process::start(name, &junction_tests::bin("actor"), &args, dir);
+    // Generous for a loaded machine; retrying would take the full 120 s.
+    actor.assert_fails_saying(Duration::from_secs(20), reasons);
+    assert!(
+        !(at_first_attempt && actor.log().contains("unreachable")),
+        "{name} took a configuration error for an outage\n{}",
+        actor.log_tail(20)
+    );
+}
+
+#[test]
+fn an_actor_with_a_tls_misconfiguration_stops_at_once() {
+    let dir = TempDir::new("tls-misconfigured");
+    make_certificates(dir.path());
+    let other = dir.path().join("other");
+    std::fs::create_dir(&other).expect("mkdir");
+    make_certificates(&other);
+    let pem = |name: &str| dir.path().join(name).display().to_string();
+    let (ca, other_ca) = (pem("ca.pem"), other.join("ca.pem").display().to_string());
+
+    let (mut learner, endpoints) = start_learner_with_files(
+        dir.path(),
+        "run",
+        &[("tls_cert", "server.pem"), ("tls_key", "server.key")],
+    );
+    let port = endpoints.grpc.rsplit(':').next().expect("port");
+    let url = format!("https://localhost:{port}");
+    // Another CA than the one that signed the learner's certificate.
+    assert_actor_stops_at_once(
+        dir.path(),
+        "wrong-ca",
+        &url,
+        &["--tls-ca", &other_ca],
+        &["TLS certificate was rejected", "--tls-ca"],
+        true,
+    );
+    // The right CA, but a name the certificate is not issued for.
+    assert_actor_stops_at_once(
+        dir.path(),
+        "wrong-domain",
+        &url,
+        &["--tls-ca", &ca, "--tls-domain", "learner.example"],
+        &[
+            "TLS certificate was rejected",
+            "learner.example",
+            "--tls-domain",
+        ],
+        true,
+    );
+    // Plain text to a TLS learner. Its alert may be lost to a reset connection, which is
+    // retried; the next attempt usually reads it.
+    assert_actor_stops_at_once(
+        dir.path(),
+        "http-to-tls",
+        &format!("http://{}", endpoints.grpc),
+        &[],
+        &["does not speak plain-text gRPC", "https://"],
+        false,
+    );
+    learner.stop(Duration::from_secs(30));
+
+    // A learner that serves its CA's certificate as its own.
+    let (mut learner, endpoints) = start_learner_with_files(
+        dir.path(),
+        "run-ca",
+        &[("tls_cert", "ca.pem"), ("tls_key", "ca.key")],
+    );
+    let port = endpoints.grpc.rsplit(':').next().expect("port");
+    assert_actor_stops_at_once(
+        dir.path(),
+        "ca-as-server",
+        &format!("https://localhost:{port}"),
+        &["--tls-ca", &ca],
+        &[
+            "TLS certificate was rejected",
+            "CaUsedAsEndEntity",
+            "tls_cert",
+        ],
+        true,
+    );
+    learner.stop(Duration::from_secs(30));
+}
+
+#[test]
+fn an_actor_that_speaks_tls_to_a_plain_text_learner_stops_at_once() {
+    let dir = TempDir::new("tls-plain");
+    make_certificates(dir.path());
+    let ca = dir.path().join("ca.pem").display().to_string();
+    let (mut learner, endpoints) = start_learner_with_files(dir.path(), "run", &[]);
+    assert_actor_stops_at_once(
+        dir.path(),
+        "https-to-plain",
+        &format!("https://{}", endpoints.grpc),
+        &["--tls-ca", &ca],
+        &["does not speak TLS", "http://"],
+        true,
     );
     learner.stop(Duration::from_secs(30));
 }
