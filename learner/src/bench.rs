@@ -12,7 +12,8 @@ use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::spec::ACTION_DIM;
 
-use crate::algo::{AlgoError, Algorithm, Phases};
+use crate::algo::phases::Phases;
+use crate::algo::{AlgoError, Algorithm};
 
 #[derive(Debug, serde::Serialize)]
 pub struct BenchReport {
@@ -148,7 +149,7 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::algo::shared_ppo::testing::ippo;
+    use crate::algo::testing::ippo;
 
     #[test]
     fn the_synthetic_batch_is_a_valid_training_batch_of_the_run_shape() {
@@ -177,7 +178,7 @@ mod tests {
         config.scenario.agents = 2;
         config.rollout.fragment_length = 10;
         config.dqn.train_batch_env_steps = 15;
-        let mut dqn = crate::algo::build(&config, tch::Device::Cpu).unwrap();
+        let mut dqn = crate::algo::configured::build(&config, tch::Device::Cpu).unwrap();
         let batch = synthetic_batch(&config, dqn.as_ref(), 1).unwrap();
         assert_eq!(batch.len(), 2, "15 env steps need 2 fragments of 10");
         let stats = dqn.update(&batch).unwrap();

@@ -10,7 +10,7 @@
 //! - [`training::trainer::Trainer::run`] is the training loop: ingest queue, stale filter,
 //!   batches, update, broadcast, checkpoint, progress.
 //! - [`algo::Algorithm`] is what each learning algorithm implements, one file each in
-//!   `algo/`; [`algo::build`] picks one from the configuration. The loss is there.
+//!   `algo/`; [`algo::configured::build`] picks one from the configuration. The loss is there.
 //! - [`transport::ingest::Ingest`] is where a fragment enters the learner, whichever
 //!   transport ([`transport::grpc`], [`transport::shm`]) carried it.
 //! - [`hub::Shared`] is the state the transports and the trainer share (configuration,
@@ -22,7 +22,8 @@
 //! `telemetry/`; the algorithms (`algo/`), the optimiser (`optim.rs`) and the update
 //! benchmark (`bench.rs`) are training's too and sit at the root until they move in.
 //! Imports run one way: `app` → `transport`, `training` → `hub` → `telemetry` → `algo` →
-//! `optim`, with `telemetry::labels` a leaf any module may use.
+//! `optim`, with `telemetry::labels` a leaf any module may use; `algo/mod.rs` gives the
+//! order inside `algo/`.
 //!
 //! # Who may import this crate
 //! The `learner` binary, and the workspace tests (`junction-tests`) for in-process runs.

@@ -214,7 +214,8 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     }
     tch::manual_seed(config.run.seed as i64);
     let device = resolve_device(config.learner.device);
-    let mut algorithm = algo::build(&config, device).context("building the algorithm")?;
+    let mut algorithm =
+        algo::configured::build(&config, device).context("building the algorithm")?;
     let report = junction_learner::bench::run(
         &config,
         algorithm.as_mut(),

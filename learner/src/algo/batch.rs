@@ -10,8 +10,8 @@ use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
 
-use super::Phases;
 use super::gae::{Estimates, Trajectories, gae};
+use super::phases::Phases;
 
 /// Alive cells of every fragment, in (fragment, step, slot) order, on the training device.
 pub struct TrainBatch {
@@ -130,27 +130,8 @@ pub fn assemble(
     let obs_dim = fragments.first().map_or(1, |f| f.obs_dim);
     let action_dim = fragments.first().map_or(1, |f| f.action_dim);
     let width = input.width(obs_dim, action_dim);
-    let (mut rows, mut bootstrap_rows) = (Vec::new(), Vec::new());
-    phases.time("assembly: critic input rows", || {
-        tch::no_grad(|| -> Result<(), tch::TchError> {
-            for raw in fragments {
-                let f = NormalizedFragment {
-                    raw,
-                    obs: normalized(&raw.obs, obs_dim, &normalize, device)?,
-                    bootstrap_obs: normalized(&raw.bootstrap_obs, obs_dim, &normalize, device)?,
-                };
-                for t in 0..raw.steps {
-                    for slot in (0..raw.agents).filter(|&s| raw.alive[raw.index(t, s)]) {
-                        input.row(&f, f.obs(t, slot), t, slot, &mut rows);
-                    }
-                }
-                for slot in (0..raw.agents).filter(|&s| raw.needs_bootstrap(s)) {
-                    let own = &f.bootstrap_obs[slot * obs_dim..(slot + 1) * obs_dim];
-                    input.row(&f, own, raw.steps - 1, slot, &mut bootstrap_rows);
-                }
-            }
-            Ok(())
-        })
+    let (mut rows, bootstrap_rows) = phases.time("assembly: critic input rows", || {
+        tch::no_grad(|| critic_rows(fragments, input, &normalize, obs_dim, device))
     })?;
     let alive_rows = rows.len() / width;
     rows.extend_from_slice(&bootstrap_rows);
@@ -162,15 +143,8 @@ pub fn assemble(
     let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
     let mut estimates = Vec::with_capacity(heads.len());
     for head in heads {
-        let values: Vec<f32> = phases.time("assembly: value estimates", || {
-            tch::no_grad(|| {
-                Vec::<f32>::try_from(
-                    (head.value)(&critic_inputs)
-                        .to_device(Device::Cpu)
-                        .to_kind(Kind::Float)
-                        .flatten(0, -1),
-                )
-            })
+        let values = phases.time("assembly: value estimates", || {
+            head_values(head, &critic_inputs)
         })?;
         let (advantages, returns, old_values) = phases.time("assembly: GAE", || {
             head_estimates(fragments, head, &values, alive_rows, lambda)
@@ -182,21 +156,7 @@ pub fn assemble(
         });
     }
     phases.time("assembly: batch tensors", || {
-        let mut obs = Vec::with_capacity(alive_rows * obs_dim);
-        let mut actions = Vec::new();
-        let mut old_log_probs = Vec::new();
-        for f in fragments {
-            for t in 0..f.steps {
-                for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
-                    let cell = f.index(t, slot);
-                    obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
-                    actions.extend_from_slice(
-                        &f.actions[cell * f.action_dim..(cell + 1) * f.action_dim],
-                    );
-                    old_log_probs.push(f.log_probs[cell]);
-                }
-            }
-        }
+        let (obs, actions, old_log_probs) = alive_samples(fragments, alive_rows * obs_dim);
         Ok(TrainBatch {
             obs: to(&obs).reshape([n, obs_dim as i64]),
             critic_inputs: critic_inputs.narrow(0, 0, n),
@@ -207,6 +167,70 @@ pub fn assemble(
             len: alive_rows,
         })
     })
+}
+
+/// The critic rows of every alive cell, then (apart) of every bootstrap observation, built
+/// once for all heads: every critic then values the same rows in one pass.
+fn critic_rows(
+    fragments: &[RolloutFragment],
+    input: &impl CriticInput,
+    normalize: &impl Fn(&Tensor) -> Tensor,
+    obs_dim: usize,
+    device: Device,
+) -> Result<(Vec<f32>, Vec<f32>), tch::TchError> {
+    let (mut rows, mut bootstrap_rows) = (Vec::new(), Vec::new());
+    for raw in fragments {
+        let f = NormalizedFragment {
+            raw,
+            obs: normalized(&raw.obs, obs_dim, normalize, device)?,
+            bootstrap_obs: normalized(&raw.bootstrap_obs, obs_dim, normalize, device)?,
+        };
+        for t in 0..raw.steps {
+            for slot in (0..raw.agents).filter(|&s| raw.alive[raw.index(t, s)]) {
+                input.row(&f, f.obs(t, slot), t, slot, &mut rows);
+            }
+        }
+        for slot in (0..raw.agents).filter(|&s| raw.needs_bootstrap(s)) {
+            let own = &f.bootstrap_obs[slot * obs_dim..(slot + 1) * obs_dim];
+            input.row(&f, own, raw.steps - 1, slot, &mut bootstrap_rows);
+        }
+    }
+    Ok((rows, bootstrap_rows))
+}
+
+/// `head`'s critic on every row, on the host: GAE runs there, per fragment.
+fn head_values(head: &Head, critic_inputs: &Tensor) -> Result<Vec<f32>, tch::TchError> {
+    tch::no_grad(|| {
+        Vec::<f32>::try_from(
+            (head.value)(critic_inputs)
+                .to_device(Device::Cpu)
+                .to_kind(Kind::Float)
+                .flatten(0, -1),
+        )
+    })
+}
+
+/// The observations (`obs_values` of them), actions and behaviour log-probabilities of every
+/// alive cell, in batch order: what the policy's loss reads, copied once.
+fn alive_samples(
+    fragments: &[RolloutFragment],
+    obs_values: usize,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let mut obs = Vec::with_capacity(obs_values);
+    let mut actions = Vec::new();
+    let mut old_log_probs = Vec::new();
+    for f in fragments {
+        for t in 0..f.steps {
+            for slot in (0..f.agents).filter(|&s| f.alive[f.index(t, s)]) {
+                let cell = f.index(t, slot);
+                obs.extend_from_slice(&f.obs[cell * f.obs_dim..(cell + 1) * f.obs_dim]);
+                actions
+                    .extend_from_slice(&f.actions[cell * f.action_dim..(cell + 1) * f.action_dim]);
+                old_log_probs.push(f.log_probs[cell]);
+            }
+        }
+    }
+    (obs, actions, old_log_probs)
 }
 
 /// Live neighbours of every alive cell's agent, in (fragment, step, slot) order: the rows of

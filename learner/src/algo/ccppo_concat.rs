@@ -56,7 +56,7 @@ pub type CcppoConcat = SharedPpo<Concat>;
 mod tests {
     use super::*;
     use crate::algo::coordination::FixedLcf;
-    use crate::algo::shared_ppo::testing::{
+    use crate::algo::testing::{
         assert_checkpoint_round_trip, close, neighbourhood_fragment, rows, small_run, unnormalized,
     };
 

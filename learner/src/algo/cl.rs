@@ -172,7 +172,7 @@ mod tests {
         );
         let mut config = config;
         config.ppo.hidden = vec![8];
-        let ippo = super::super::build(&config, tch::Device::Cpu).unwrap();
+        let ippo = crate::algo::configured::build(&config, tch::Device::Cpu).unwrap();
         assert_eq!(
             ippo.stage(0, 30),
             Stage {
@@ -181,7 +181,7 @@ mod tests {
             }
         );
         config.learner.algo = junction_common::config::AlgoKind::Cl;
-        let cl = super::super::build(&config, tch::Device::Cpu).unwrap();
+        let cl = crate::algo::configured::build(&config, tch::Device::Cpu).unwrap();
         assert_eq!(cl.name(), "cl");
         assert_eq!(
             cl.stage(0, 30),

@@ -286,7 +286,7 @@ mod tests {
     use crate::algo::Algorithm;
     use crate::algo::ippo::OwnObservation;
     use crate::algo::shared_ppo::SharedPpo;
-    use crate::algo::shared_ppo::testing::{
+    use crate::algo::testing::{
         assert_checkpoint_round_trip_on, constant_critic_batch, neighbourhood_fragment, small_run,
     };
     use junction_common::config::RunConfig;

@@ -159,6 +159,100 @@ impl Dqn {
         let q_mean = f64::try_from(q.detach().mean(Kind::Float))?;
         Ok(Some([loss_value, q_mean, grad_norm]))
     }
+
+    /// Coordinates each fragment's rewards with the fixed LCF and stores its alive cells as
+    /// transitions, counting them (and the fragments refused for actions off the grid) in
+    /// `stats`; returns what the normaliser and the LCF report need of the cells stored.
+    fn add_to_replay(&mut self, fragments: &[RolloutFragment], stats: &mut UpdateStats) -> Added {
+        let lcf = &self.coordination;
+        let phi = lcf.phi_deg.to_radians();
+        let grid = self.online.grid().clone();
+        let mut added = Added::default();
+        for f in fragments {
+            let rewards = lcf::coordinated_rewards(f, phi, lcf);
+            match self.replay.push_fragment(f, &rewards, |a| grid.index_of(a)) {
+                Some(count) => {
+                    stats.agent_steps += count;
+                    let f = std::slice::from_ref(f);
+                    added.neighbour_counts.extend(alive_neighbour_counts(f));
+                    if self.config.normalize_observations {
+                        added.observations.extend(alive_observations(f));
+                    }
+                }
+                None => stats.off_grid_fragments += 1,
+            }
+        }
+        added
+    }
+
+    /// The fixed φ every transition's reward was coordinated with, by neighbour count: the
+    /// report the PPO algorithms' coordination gives, so DQN's reads like theirs.
+    fn fixed_phi_by_neighbours(
+        &self,
+        neighbour_counts: &[usize],
+    ) -> [Option<f64>; lcf::NEIGHBOUR_BUCKETS.len()] {
+        let phi_deg = self.coordination.phi_deg;
+        LcfReport::from_rows(&vec![phi_deg; neighbour_counts.len()], neighbour_counts).by_neighbours
+    }
+
+    /// Folds the stored observations into the online network's running statistics (empty
+    /// without `normalize_observations`), the ones actors normalise with after the broadcast.
+    fn fold_observations(&mut self, observations: &[f32]) -> Result<(), AlgoError> {
+        if !observations.is_empty() {
+            let mut normalizer = self.online.obs_stats()?;
+            normalizer.update(observations);
+            self.online.set_obs_stats(&normalizer);
+        }
+        Ok(())
+    }
+
+    /// Whole gradient steps the replay ratio asks for after `new_transitions`; the fraction
+    /// left is owed to the next update, so the ratio holds over a run, not per update.
+    fn gradient_steps_owed(&mut self, new_transitions: usize) -> usize {
+        let c = &self.config;
+        self.step_debt += new_transitions as f32 * c.replay_ratio / c.batch_size as f32;
+        let steps = self.step_debt.floor();
+        self.step_debt -= steps;
+        steps as usize
+    }
+
+    /// `steps` gradient steps on minibatches drawn with this update's seed (a resumed run
+    /// draws what the original would), their means into `stats`.
+    fn train(&mut self, steps: usize, stats: &mut UpdateStats) -> Result<(), AlgoError> {
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut taken = 0usize;
+        for _ in 0..steps {
+            match self.gradient_step(&mut rng)? {
+                Some([loss, q_mean, grad_norm]) => {
+                    stats.value_loss += loss;
+                    stats.q_mean += q_mean;
+                    stats.grad_norm += grad_norm;
+                    stats.samples_trained += self.config.batch_size;
+                    taken += 1;
+                }
+                None => stats.skipped_minibatches += 1,
+            }
+        }
+        let n = taken.max(1) as f64;
+        for field in [
+            &mut stats.value_loss,
+            &mut stats.q_mean,
+            &mut stats.grad_norm,
+        ] {
+            *field /= n;
+        }
+        Ok(())
+    }
+}
+
+/// What an update stored, as the normaliser and the LCF report take it.
+#[derive(Default)]
+struct Added {
+    /// Observations of the stored cells, row-major (empty without `normalize_observations`).
+    observations: Vec<f32>,
+    /// Live neighbours of each stored cell's agent.
+    neighbour_counts: Vec<usize>,
 }
 
 impl Algorithm for Dqn {
@@ -183,76 +277,23 @@ impl Algorithm for Dqn {
         off_grid.then_some(DROP_OFF_GRID)
     }
 
+    /// The module documentation's outline, one line per stage.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError> {
-        let lcf = &self.coordination;
-        let phi = lcf.phi_deg.to_radians();
-        let grid = self.online.grid().clone();
         let mut stats = UpdateStats {
             learning_rate: self.adam.learning_rate(),
-            lcf_mean_deg: f64::from(lcf.phi_deg),
+            lcf_mean_deg: f64::from(self.coordination.phi_deg),
             ..UpdateStats::default()
         };
-        let mut observations = Vec::new();
-        let mut neighbour_counts = Vec::new();
-        for f in fragments {
-            let rewards = lcf::coordinated_rewards(f, phi, lcf);
-            match self.replay.push_fragment(f, &rewards, |a| grid.index_of(a)) {
-                Some(added) => {
-                    stats.agent_steps += added;
-                    let f = std::slice::from_ref(f);
-                    neighbour_counts.extend(alive_neighbour_counts(f));
-                    if self.config.normalize_observations {
-                        observations.extend(alive_observations(f));
-                    }
-                }
-                None => stats.off_grid_fragments += 1,
-            }
-        }
-        // The fixed φ every transition's reward was coordinated with, by neighbour count.
-        let report = LcfReport::from_rows(
-            &vec![lcf.phi_deg; neighbour_counts.len()],
-            &neighbour_counts,
-        );
-        stats.lcf_phi_by_neighbours = report.by_neighbours;
+        let added = self.add_to_replay(fragments, &mut stats);
+        stats.lcf_phi_by_neighbours = self.fixed_phi_by_neighbours(&added.neighbour_counts);
         if stats.agent_steps == 0 && stats.off_grid_fragments == 0 {
             return Err(AlgoError::EmptyBatch);
         }
-        if !observations.is_empty() {
-            let mut normalizer = self.online.obs_stats()?;
-            normalizer.update(&observations);
-            self.online.set_obs_stats(&normalizer);
-        }
+        self.fold_observations(&added.observations)?;
         self.agent_steps += stats.agent_steps as u64;
-
-        let c = &self.config;
-        if self.replay.len() >= c.learning_starts.max(1) {
-            self.step_debt += stats.agent_steps as f32 * c.replay_ratio / c.batch_size as f32;
-            let steps = self.step_debt.floor();
-            self.step_debt -= steps;
-            let mut rng = ChaCha8Rng::seed_from_u64(
-                self.seed ^ self.updates.wrapping_mul(0x9E37_79B9_7F4A_7C15),
-            );
-            let mut taken = 0usize;
-            for _ in 0..steps as usize {
-                match self.gradient_step(&mut rng)? {
-                    Some([loss, q_mean, grad_norm]) => {
-                        stats.value_loss += loss;
-                        stats.q_mean += q_mean;
-                        stats.grad_norm += grad_norm;
-                        stats.samples_trained += self.config.batch_size;
-                        taken += 1;
-                    }
-                    None => stats.skipped_minibatches += 1,
-                }
-            }
-            let n = taken.max(1) as f64;
-            for field in [
-                &mut stats.value_loss,
-                &mut stats.q_mean,
-                &mut stats.grad_norm,
-            ] {
-                *field /= n;
-            }
+        if self.replay.len() >= self.config.learning_starts.max(1) {
+            let steps = self.gradient_steps_owed(stats.agent_steps);
+            self.train(steps, &mut stats)?;
         }
         self.online
             .set_epsilon(Self::epsilon(&self.config, self.agent_steps));
@@ -336,7 +377,7 @@ fn read_counter(state: &mut Decoded, name: &str) -> Result<u64, WeightsError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::algo::shared_ppo::testing::{
+    use crate::algo::testing::{
         assert_checkpoint_round_trip, host_state, neighbourhood_fragment, one_step_fragment,
     };
     use junction_common::config::RunConfig;

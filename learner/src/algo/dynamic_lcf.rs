@@ -37,10 +37,11 @@
 
 use std::borrow::Cow;
 
+use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{DynamicLcfConfig, GlobalReturn, LcfConfig};
+use junction_common::config::{DynamicLcfConfig, GlobalReturn, LcfConfig, PpoConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, FEATURES};
 use junction_common::mlp::Mlp;
@@ -153,6 +154,98 @@ impl DynamicLcf {
         let phi = tch::no_grad(|| phi_deg(&self.net, &features, self.max_phi_deg));
         Ok(Vec::<f32>::try_from(phi.to_device(Device::Cpu))?)
     }
+
+    /// Each batch row's weight w_j in mean_k[c_k·A_C,k] (the reward adjoint of GAE applied to
+    /// the sensitivities `c`), with the row's r_i and r_N: A_C is linear in the rewards, so the
+    /// meta-objective is a weighted sum of coordinated rewards, the only place ψ enters.
+    fn weighted_rewards(
+        &self,
+        fragments: &[RolloutFragment],
+        c: &Tensor,
+        ppo: &PpoConfig,
+    ) -> Result<WeightedRewards, AlgoError> {
+        let c = Vec::<f32>::try_from(c.to_device(Device::Cpu))?;
+        let (mut weights, mut own, mut neighbourhood) = (Vec::new(), Vec::new(), Vec::new());
+        let mut next = c.iter();
+        for f in fragments {
+            let cells = f.steps * f.agents;
+            let mut cotangents = vec![0.0; cells];
+            for cell in (0..cells).filter(|&c| f.alive[c]) {
+                cotangents[cell] = next.next().copied().unwrap_or(0.0);
+            }
+            let w = reward_adjoint(
+                (f.steps, f.agents),
+                &f.dones,
+                &f.alive,
+                &cotangents,
+                ppo.gamma,
+                ppo.gae_lambda,
+            );
+            let r_n = lcf::neighbourhood_rewards(f, self.lcf.neighbourhood_reward);
+            for cell in (0..cells).filter(|&c| f.alive[c]) {
+                weights.push(w[cell]);
+                own.push(f.rewards[cell]);
+                neighbourhood.push(r_n[cell]);
+            }
+        }
+        let device = self.device();
+        let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
+        Ok(WeightedRewards {
+            weights: to(&weights),
+            own: to(&own),
+            neighbourhood: to(&neighbourhood),
+        })
+    }
+
+    /// `meta_iterations` Adam ascent passes on ψ over minibatches of the batch's `rows`, along
+    /// mean_j[w_j·r_C,j(ψ)] / `scale`: divided by the coordinated advantage's std so the
+    /// step follows the standardised advantage the PPO loss used.
+    fn ascend(
+        &mut self,
+        rewards: &WeightedRewards,
+        features: &Tensor,
+        scale: f64,
+        rows: usize,
+        minibatch: usize,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(), AlgoError> {
+        let device = self.device();
+        let (net, alpha, beta) = (
+            &self.net,
+            f64::from(self.lcf.alpha),
+            f64::from(self.lcf.beta),
+        );
+        let max_deg = self.max_phi_deg;
+        let WeightedRewards {
+            weights,
+            own,
+            neighbourhood,
+        } = rewards;
+        meta_lcf::ascend(
+            &mut self.adam,
+            self.iterations,
+            rows,
+            minibatch,
+            rng,
+            device,
+            |idx| {
+                let phi = phi_deg(net, &features.index_select(0, idx), max_deg)
+                    * (std::f64::consts::PI / 180.0);
+                let reward = phi.cos() * own.index_select(0, idx) * alpha
+                    + phi.sin() * neighbourhood.index_select(0, idx) * beta;
+                (weights.index_select(0, idx) * reward).mean(Kind::Float) / scale
+            },
+        )?;
+        Ok(())
+    }
+}
+
+/// Per batch row: the weight w_j of its coordinated reward in the meta-objective, and the
+/// rewards that one mixes, r_i and r_N.
+struct WeightedRewards {
+    weights: Tensor,
+    own: Tensor,
+    neighbourhood: Tensor,
 }
 
 impl Coordination for DynamicLcf {
@@ -197,6 +290,7 @@ impl Coordination for DynamicLcf {
         true
     }
 
+    /// The module documentation's meta-gradient on ψ, then the pace.
     fn learn(&mut self, step: MetaStep) -> Result<(), AlgoError> {
         let batch = step.batch;
         let c = meta_lcf::sensitivities(
@@ -208,36 +302,11 @@ impl Coordination for DynamicLcf {
             step.ppo.minibatch_size,
             &meta_lcf::segments(step.fragments, self.cross_fit),
         )?;
-        let c = Vec::<f32>::try_from(c.to_device(Device::Cpu))?;
-        // Each reward's weight w_j in mean_k[c_k·A_C,k], and the rows' r_i and r_N.
-        let (mut weights, mut own, mut neighbourhood) = (Vec::new(), Vec::new(), Vec::new());
-        let mut next = c.iter();
-        for f in step.fragments {
-            let cells = f.steps * f.agents;
-            let mut cotangents = vec![0.0; cells];
-            for cell in (0..cells).filter(|&c| f.alive[c]) {
-                cotangents[cell] = next.next().copied().unwrap_or(0.0);
-            }
-            let w = reward_adjoint(
-                (f.steps, f.agents),
-                &f.dones,
-                &f.alive,
-                &cotangents,
-                step.ppo.gamma,
-                step.ppo.gae_lambda,
-            );
-            let r_n = lcf::neighbourhood_rewards(f, self.lcf.neighbourhood_reward);
-            for cell in (0..cells).filter(|&c| f.alive[c]) {
-                weights.push(w[cell]);
-                own.push(f.rewards[cell]);
-                neighbourhood.push(r_n[cell]);
-            }
-        }
-        let device = self.device();
-        let to = |v: &[f32]| Tensor::from_slice(v).to_device(device);
-        let (weights, own, neighbourhood) = (to(&weights), to(&own), to(&neighbourhood));
+        let rewards = self.weighted_rewards(step.fragments, &c, step.ppo)?;
         let rows = feature_rows(step.fragments);
-        let features = to(&rows).reshape([batch.len as i64, FEATURES as i64]);
+        let features = Tensor::from_slice(&rows)
+            .to_device(self.device())
+            .reshape([batch.len as i64, FEATURES as i64]);
         let scale = f64::try_from(batch.heads[COORDINATED].advantages.std(true))? + 1e-8;
         let before: Vec<Tensor> = self
             .store
@@ -246,27 +315,8 @@ impl Coordination for DynamicLcf {
             .map(|v| v.detach().copy())
             .collect();
         let phi_before = tch::no_grad(|| phi_deg(&self.net, &features, self.max_phi_deg));
-        let (net, alpha, beta) = (
-            &self.net,
-            f64::from(self.lcf.alpha),
-            f64::from(self.lcf.beta),
-        );
-        let max_deg = self.max_phi_deg;
-        meta_lcf::ascend(
-            &mut self.adam,
-            self.iterations,
-            batch.len,
-            step.ppo.minibatch_size,
-            step.rng,
-            device,
-            |idx| {
-                let phi = phi_deg(net, &features.index_select(0, idx), max_deg)
-                    * (std::f64::consts::PI / 180.0);
-                let reward = phi.cos() * own.index_select(0, idx) * alpha
-                    + phi.sin() * neighbourhood.index_select(0, idx) * beta;
-                (weights.index_select(0, idx) * reward).mean(Kind::Float) / scale
-            },
-        )?;
+        let minibatch = step.ppo.minibatch_size;
+        self.ascend(&rewards, &features, scale, batch.len, minibatch, step.rng)?;
         self.pace(&before, &phi_before, &features);
         Ok(())
     }
@@ -314,10 +364,10 @@ mod tests {
     use crate::algo::Algorithm;
     use crate::algo::coordination::FixedLcf;
     use crate::algo::ippo::OwnObservation;
-    use crate::algo::shared_ppo::SharedPpo;
-    use crate::algo::shared_ppo::testing::{
-        assert_checkpoint_round_trip, constant_critic_batch, copy_networks, host_state,
-        neighbourhood_fragment, small_run,
+    use crate::algo::shared_ppo::{SharedPpo, copy_networks};
+    use crate::algo::testing::{
+        assert_checkpoint_round_trip, constant_critic_batch, host_state, neighbourhood_fragment,
+        small_run,
     };
     use junction_common::config::{DynamicLcfConfig, NeighbourhoodReward, RunConfig};
 

@@ -35,7 +35,7 @@ pub type Ippo = SharedPpo<OwnObservation>;
 #[cfg(test)]
 mod tests {
     use crate::algo::Algorithm;
-    use crate::algo::shared_ppo::testing::{ippo, one_step_fragment};
+    use crate::algo::testing::{ippo, one_step_fragment};
     use junction_common::config::{LrSchedule, RunConfig};
     use junction_common::fragment::RolloutFragment;
     use junction_common::policy::Policy;

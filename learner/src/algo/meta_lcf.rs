@@ -133,35 +133,42 @@ pub fn sensitivities(
     segments: &[Segment],
 ) -> Result<Tensor, AlgoError> {
     let chunk = chunk.max(1);
-    let chunks = |segment: Segment| {
-        (segment.start..segment.start + segment.len)
-            .step_by(chunk)
-            .map(move |start| {
-                (
-                    start as i64,
-                    chunk.min(segment.start + segment.len - start) as i64,
-                )
-            })
-    };
-    let log_probs = |policy: &GaussianPolicy, start: i64, len: i64| {
-        let obs = policy.normalize(&batch.obs.narrow(0, start, len));
-        let (mean, log_std) = policy.distribution(&obs);
-        gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len))
-    };
     let global = standardize(global_advantages);
-    let folds = segments.iter().map(|s| s.fold + 1).max().unwrap_or(0);
-    let mut fold_rows = vec![0usize; folds];
+    let g = fold_gradients(after, batch, &global, clip, chunk, segments)?;
+    let params_before = before.trainable();
+    let mut c = Vec::new();
     for segment in segments {
-        fold_rows[segment.fold] += segment.len;
+        let direction = &g[if g.len() == 1 { 0 } else { 1 - segment.fold }];
+        for (start, len) in chunks(*segment, chunk) {
+            c.push(log_prob_jvp(
+                &log_probs(before, batch, start, len),
+                &params_before,
+                direction,
+            )?);
+        }
     }
+    Ok(Tensor::f_cat(&c, 0)?)
+}
 
+/// g per fold: the gradient under the policy `after` the update of the global objective J_G
+/// (the clipped surrogate on the `global` advantages) over the fold's rows. Summed chunk by
+/// chunk, each weighted by its share of the fold, so g is the fold's mean however it is cut.
+fn fold_gradients(
+    after: &GaussianPolicy,
+    batch: &TrainBatch,
+    global: &Tensor,
+    clip: f64,
+    chunk: usize,
+    segments: &[Segment],
+) -> Result<Vec<Vec<Tensor>>, AlgoError> {
+    let fold_rows = fold_rows(segments);
     let params_after = after.trainable();
-    let mut g: Vec<Vec<Tensor>> = (0..folds)
+    let mut g: Vec<Vec<Tensor>> = (0..fold_rows.len())
         .map(|_| params_after.iter().map(Tensor::zeros_like).collect())
         .collect();
     for segment in segments {
-        for (start, len) in chunks(*segment) {
-            let log_probs = log_probs(after, start, len);
+        for (start, len) in chunks(*segment, chunk) {
+            let log_probs = log_probs(after, batch, start, len);
             let share = len as f64 / fold_rows[segment.fold] as f64;
             let objective = -clipped_surrogate(
                 &log_probs,
@@ -179,20 +186,38 @@ pub fn sensitivities(
             }
         }
     }
+    Ok(g)
+}
 
-    let params_before = before.trainable();
-    let mut c = Vec::new();
+/// Rows in each fold, indexed by fold: what a chunk's share of its fold's mean is taken of.
+fn fold_rows(segments: &[Segment]) -> Vec<usize> {
+    let folds = segments.iter().map(|s| s.fold + 1).max().unwrap_or(0);
+    let mut fold_rows = vec![0usize; folds];
     for segment in segments {
-        let direction = &g[if folds == 1 { 0 } else { 1 - segment.fold }];
-        for (start, len) in chunks(*segment) {
-            c.push(log_prob_jvp(
-                &log_probs(before, start, len),
-                &params_before,
-                direction,
-            )?);
-        }
+        fold_rows[segment.fold] += segment.len;
     }
-    Ok(Tensor::f_cat(&c, 0)?)
+    fold_rows
+}
+
+/// `segment`'s rows as (start, len) runs of at most `chunk`: what bounds the memory of the
+/// double backward.
+fn chunks(segment: Segment, chunk: usize) -> impl Iterator<Item = (i64, i64)> {
+    (segment.start..segment.start + segment.len)
+        .step_by(chunk)
+        .map(move |start| {
+            (
+                start as i64,
+                chunk.min(segment.start + segment.len - start) as i64,
+            )
+        })
+}
+
+/// log π(a|s) under `policy` of the batch rows `start..start + len`; the batch holds raw
+/// observations, so the policy's statistics normalise them first.
+fn log_probs(policy: &GaussianPolicy, batch: &TrainBatch, start: i64, len: i64) -> Tensor {
+    let obs = policy.normalize(&batch.obs.narrow(0, start, len));
+    let (mean, log_std) = policy.distribution(&obs);
+    gaussian_log_prob(&mean, &log_std, &batch.actions.narrow(0, start, len))
 }
 
 /// Adam ascent on the parameters `adam` holds: `iterations` passes over shuffled minibatches

@@ -1,10 +1,18 @@
 //! Learning algorithms, one file each; the pieces they share (GAE, batching, PPO loss terms)
 //! live beside them, written once.
+//!
+//! Imports run one way, from the top: [`configured`] (the configured algorithm) → the
+//! algorithms (`cl` → `ippo`, `ccppo_concat`, `ccppo_mf` → `shared_ppo`; `dynamic_lcf` →
+//! `copo` → `meta_lcf`; `dqn` → `replay`) → what they share (`shared_ppo` → `coordination`,
+//! `ppo`, `safety`; `meta_lcf` → `ppo`; all of them → `batch` → `gae`) → this file, what an
+//! algorithm is, reports and fails with → [`phases`]. The tests' fixtures are `testing`'s,
+//! compiled for tests only.
 
 pub mod batch;
 pub mod ccppo_concat;
 pub mod ccppo_mf;
 pub mod cl;
+pub mod configured;
 pub mod coordination;
 pub mod copo;
 pub mod dqn;
@@ -12,57 +20,23 @@ pub mod dynamic_lcf;
 pub mod gae;
 pub mod ippo;
 pub mod meta_lcf;
+pub mod phases;
 pub mod ppo;
 pub mod replay;
 pub mod safety;
 pub mod shared_ppo;
+#[cfg(test)]
+pub(crate) mod testing;
 
-use std::time::Instant;
+use tch::Tensor;
 
-use tch::{Device, Tensor};
-
-use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::policy::Policy;
 use junction_common::q_policy::GridError;
-use junction_common::spec::ACTION_DIM;
 use junction_common::weights::{Decoded, WeightsError};
 
-use ccppo_concat::Concat;
-use ccppo_mf::MeanField;
-use coordination::{Coordination, FixedLcf};
-use ippo::OwnObservation;
-use shared_ppo::SharedPpo;
-
-/// Seconds an update spent in each of its phases, in the order first met: the profile
-/// `learner bench` prints (BENCHMARKS.md, "Where an update's time goes").
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Phases(pub Vec<(&'static str, f64)>);
-
-impl Phases {
-    pub fn add(&mut self, phase: &'static str, seconds: f64) {
-        match self.0.iter_mut().find(|(name, _)| *name == phase) {
-            Some((_, total)) => *total += seconds,
-            None => self.0.push((phase, seconds)),
-        }
-    }
-
-    /// Runs `f`, adding its time to `phase`.
-    pub fn time<T>(&mut self, phase: &'static str, f: impl FnOnce() -> T) -> T {
-        let started = Instant::now();
-        let out = f();
-        self.add(phase, started.elapsed().as_secs_f64());
-        out
-    }
-
-    /// Adds every phase of `other`.
-    pub fn merge(&mut self, other: &Phases) {
-        for &(phase, seconds) in &other.0 {
-            self.add(phase, seconds);
-        }
-    }
-}
+use phases::Phases;
 
 /// Diagnostics of one policy update, averaged over its minibatches (DQN: over its gradient
 /// steps; its TD loss is `value_loss`).
@@ -163,66 +137,4 @@ pub trait Algorithm {
             agents: scenario_agents,
         }
     }
-}
-
-/// The configured algorithm (`learner.algo`) for the run's observation size, on `device`.
-pub fn build(config: &RunConfig, device: Device) -> Result<Box<dyn Algorithm + Send>, AlgoError> {
-    let obs_dim = config.policy_obs_dim();
-    let ppo = |name, input, coordination: Box<dyn Coordination>| {
-        SharedPpo::new(
-            name,
-            input,
-            coordination,
-            config,
-            obs_dim,
-            ACTION_DIM,
-            device,
-        )
-    };
-    let fixed = || Box::new(FixedLcf::new(&config.lcf));
-    Ok(match config.learner.algo {
-        AlgoKind::Ippo => Box::new(ppo("ippo", OwnObservation, fixed())),
-        AlgoKind::Cl => Box::new(cl::Cl::new(
-            ppo("ippo", OwnObservation, fixed()),
-            cl::Curriculum::new(&config.curriculum),
-        )),
-        AlgoKind::CcppoMf => Box::new(SharedPpo::new(
-            "ccppo-mf",
-            MeanField,
-            fixed(),
-            config,
-            obs_dim,
-            ACTION_DIM,
-            device,
-        )),
-        AlgoKind::CcppoConcat => Box::new(SharedPpo::new(
-            "ccppo-concat",
-            Concat {
-                neighbours: config.ccppo.neighbours,
-            },
-            fixed(),
-            config,
-            obs_dim,
-            ACTION_DIM,
-            device,
-        )),
-        AlgoKind::Copo => Box::new(ppo(
-            "copo",
-            OwnObservation,
-            Box::new(copo::CopoLcf::new(&config.copo, &config.lcf, device)),
-        )),
-        AlgoKind::DynamicLcf => Box::new(ppo(
-            "dynamic-lcf",
-            OwnObservation,
-            Box::new(dynamic_lcf::DynamicLcf::new(
-                &config.dynamic_lcf,
-                &config.lcf,
-                device,
-            )),
-        )),
-        AlgoKind::Dqn => Box::new(
-            dqn::Dqn::new(&config.dqn, obs_dim, device, config.run.seed)?
-                .with_coordination(&config.lcf),
-        ),
-    })
 }

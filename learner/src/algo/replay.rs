@@ -220,7 +220,7 @@ impl ReplayBuffer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::algo::shared_ppo::testing::neighbourhood_fragment;
+    use crate::algo::testing::neighbourhood_fragment;
     use rand::SeedableRng;
 
     fn host(t: &Tensor) -> Vec<f32> {

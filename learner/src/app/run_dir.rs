@@ -105,7 +105,8 @@ impl RunDir {
         match &self.resume {
             Some(candidates) => restore_newest(candidates, config, device),
             None => Ok(Start {
-                algorithm: algo::build(config, device).context("building the algorithm")?,
+                algorithm: algo::configured::build(config, device)
+                    .context("building the algorithm")?,
                 progress: Progress::default(),
                 actors_registered: 0,
             }),
@@ -148,7 +149,8 @@ fn restore_newest(
     device: tch::Device,
 ) -> anyhow::Result<Start> {
     for path in candidates {
-        let mut algorithm = algo::build(config, device).context("building the algorithm")?;
+        let mut algorithm =
+            algo::configured::build(config, device).context("building the algorithm")?;
         match restore(path, algorithm.as_mut()) {
             Ok(meta) => {
                 tracing::info!(path = %path.display(), version = meta.version, "resumed");

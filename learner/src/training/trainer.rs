@@ -630,7 +630,7 @@ mod tests {
             .unwrap();
         // As on the learner's blocking thread: inside the runtime's context.
         let _context = runtime.enter();
-        let algorithm = algo::build(&config, tch::Device::Cpu).unwrap();
+        let algorithm = algo::configured::build(&config, tch::Device::Cpu).unwrap();
         let initial = weights_message(algorithm.as_ref(), 0, 1, false).unwrap();
         let metrics = LearnerMetrics::new().unwrap();
         let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
