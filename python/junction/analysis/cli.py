@@ -10,6 +10,9 @@
                               LCF angle, endings, evaluations); --only picks some
   grid SOURCE... [EVAL_SEED]  RESULTS.md's grid tables (what scripts/grid-tables.py prints)
   figures SOURCE... --out DIR the SVG figures alone
+  time-to-success FILE...     scripts/time-to-success.py's JSON lines, one row per file
+                              (setting): seconds to the training window's thresholds per seed,
+                              the evaluation's means ± 95 % t over seeds
   results-md                  every table of RESULTS.md, each with the command that makes it
 
 A SOURCE is a results folder (its raw run directories while it has them, else its
@@ -126,6 +129,11 @@ def main(argv=None):
     _common(p)
     p.add_argument("--out", required=True)
 
+    p = sub.add_parser("time-to-success", help="scripts/time-to-success.py's lines, tabled")
+    p.add_argument("files", nargs="+", metavar="FILE")
+    p.add_argument("--also", type=float, default=0.7,
+                   help="the second threshold of the table, besides the files' own")
+
     sub.add_parser("results-md", help="every table of RESULTS.md")
 
     args = parser.parse_args(argv)
@@ -170,6 +178,9 @@ def main(argv=None):
     elif args.command == "figures":
         for path in write_figures(_load(args), args.out, by, order):
             print(path, file=sys.stderr)
+    elif args.command == "time-to-success":
+        from .time_to_success import table
+        print(table(args.files, args.also), end="")
     elif args.command == "results-md":
         from .results_md import print_all
         print_all()
