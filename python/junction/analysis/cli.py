@@ -180,7 +180,10 @@ def main(argv=None):
             print(path, file=sys.stderr)
     elif args.command == "time-to-success":
         from .time_to_success import table
-        print(table(args.files, args.also), end="")
+        try:
+            print(table(args.files, args.also), end="")
+        except (OSError, ValueError, KeyError) as e:
+            parser.error(f"not time-to-success.py's lines: {e!r}")
     elif args.command == "results-md":
         from .results_md import print_all
         print_all()
