@@ -258,6 +258,8 @@ struct Actor {
     actor_id: watch::Sender<String>,
     finished: Arc<AtomicBool>,
     rollout: Option<tokio::task::JoinHandle<anyhow::Result<()>>>,
+    /// Rollout streams opened so far; the ledger numbers them.
+    connections: u64,
 }
 
 /// Runs until the learner says the run is finished (Ok), the learner stays unreachable longer
@@ -288,6 +290,7 @@ pub async fn run(
         actor_id: watch::channel(String::new()).0,
         finished: Arc::new(AtomicBool::new(false)),
         rollout: None,
+        connections: 0,
     };
     let mut unreachable_since = Instant::now();
     let mut reported = false;
@@ -365,6 +368,7 @@ impl Actor {
             protocol_version: PROTOCOL_VERSION,
             actor_name: self.options.name.clone(),
             scenes: self.options.scenes as u32,
+            instance: self.options.log.instance().to_string(),
         };
         let reply = match tokio::time::timeout(CALL_TIMEOUT, client.register(hello)).await {
             Ok(Ok(reply)) => reply.into_inner(),
@@ -456,11 +460,14 @@ impl Actor {
 
         let ended = Arc::new(AtomicBool::new(false));
         let taken = Arc::new(AtomicU64::new(0));
+        self.connections += 1;
+        let connection = self.connections;
         let stream = OutboxStream::new(
             Arc::clone(&self.outbox),
             Arc::clone(&ended),
             Arc::clone(&taken),
-        );
+        )
+        .on_connection(actor_id.clone(), Arc::clone(&self.options.log), connection);
         let finished = Arc::clone(&self.finished);
         let rollout_handle = &mut self.rollout;
         let mut push = std::pin::pin!(client.push_rollouts(stream));
@@ -480,6 +487,8 @@ impl Actor {
                     // outbox: the run finished, or the thread failed.
                     Ok(summary) => {
                         let s = summary.into_inner();
+                        self.options.log.confirmed(connection, s.accepted_fragments);
+                        self.metrics.fragments_confirmed.inc_by(s.accepted_fragments);
                         tracing::info!(
                             fragments = s.accepted_fragments,
                             agent_steps = s.accepted_agent_steps,
@@ -530,6 +539,9 @@ impl Actor {
         }
         ended.store(true, Ordering::Release);
         let unconfirmed = taken.load(Ordering::Relaxed);
+        if unconfirmed > 0 {
+            self.options.log.unconfirmed(connection, unconfirmed);
+        }
         if unconfirmed > 0 && !matches!(end, SessionEnd::Finished) {
             // Some of these may have reached the learner before the connection broke; it
             // counts what it accepted, this side cannot know which.

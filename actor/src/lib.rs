@@ -5,6 +5,7 @@ pub mod bench;
 pub mod eval;
 pub mod grpc;
 pub mod lcf_column;
+pub mod ledger;
 pub mod metrics;
 pub mod reconnect;
 pub mod replay;

@@ -9,6 +9,7 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use tracing::Instrument;
 
+use junction_actor::ledger::FragmentLog;
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::replay::{self, Driver, ReplayOptions};
 use junction_actor::session::ActorOptions;
@@ -115,6 +116,11 @@ struct RunArgs {
     /// Name shown in the learner's logs [default: <hostname>/<pid>].
     #[arg(long)]
     name: Option<String>,
+    /// Append this process's fragment ledger (what it produced and sent, one JSON line per
+    /// event) to FILE, for `python -m junction.ledger` to reconcile with the learner's
+    /// (docs/FAULTS.md). Restarted actors may share the file.
+    #[arg(long, value_name = "FILE")]
+    ledger: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -502,10 +508,21 @@ fn run_actor(args: RunArgs) -> anyhow::Result<bool> {
                 token: Token::load(args.auth_token_file.as_deref())?,
             }),
         };
+        let name = args
+            .name
+            .unwrap_or_else(|| format!("{}/{}", hostname.trim(), std::process::id()));
+        let transport_name = match transport {
+            Transport::Shm(_) => "shm",
+            Transport::Grpc(_) => "grpc",
+        };
+        let log = Arc::new(match &args.ledger {
+            Some(path) => FragmentLog::open(path, &name, transport_name)
+                .with_context(|| format!("opening the fragment ledger {}", path.display()))?,
+            None => FragmentLog::off(&name),
+        });
         let options = ActorOptions {
-            name: args
-                .name
-                .unwrap_or_else(|| format!("{}/{}", hostname.trim(), std::process::id())),
+            name,
+            log: Arc::clone(&log),
             scenes: args.scenes as usize,
             seed: args.seed,
             give_up_after: (args.connect_timeout > 0.0)
@@ -530,6 +547,8 @@ fn run_actor(args: RunArgs) -> anyhow::Result<bool> {
                 Ok(signal == "SIGINT")
             }
         };
+        // Not killed: whatever it produced and did not send, it knows it did not.
+        log.stop();
         let _ = shutdown_tx.send(true);
         if let Some(server) = metrics_server {
             let _ = tokio::time::timeout(Duration::from_secs(2), server).await;

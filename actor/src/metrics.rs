@@ -18,6 +18,7 @@ pub struct ActorMetrics {
     pub connected: IntGauge,
     pub reconnects: IntCounter,
     pub fragments_unconfirmed: IntCounter,
+    pub fragments_confirmed: IntCounter,
 }
 
 impl ActorMetrics {
@@ -66,6 +67,10 @@ impl ActorMetrics {
             fragments_unconfirmed: r.int_counter(
                 names::ACTOR_FRAGMENTS_UNCONFIRMED,
                 "Fragments sent on a rollout stream that broke before the learner confirmed it (the learner counts those it accepted).",
+            )?,
+            fragments_confirmed: r.int_counter(
+                names::ACTOR_FRAGMENTS_CONFIRMED,
+                "Fragments the learner confirmed it accepted (a rollout stream closed with its summary).",
             )?,
             registry,
         })

@@ -13,6 +13,8 @@ use tonic::Code;
 
 use junction_common::proto;
 
+use crate::ledger::FragmentLog;
+
 /// Exponential back-off with "equal jitter": attempt `n` waits a uniform draw from
 /// `[d/2, d]` with `d = min(max, initial · 2ⁿ)`, so many actors that lost the same learner
 /// do not all come back in the same instant, and no wait exceeds `max`.
@@ -81,6 +83,14 @@ pub struct OutboxStream {
     ended: Arc<AtomicBool>,
     /// Fragments this stream handed to the transport.
     taken: Arc<AtomicU64>,
+    /// The connection's actor id, its ledger and number, once known ([`OutboxStream::on_connection`]).
+    connection: Option<Connection>,
+}
+
+struct Connection {
+    actor_id: String,
+    log: Arc<FragmentLog>,
+    number: u64,
 }
 
 impl OutboxStream {
@@ -93,7 +103,21 @@ impl OutboxStream {
             outbox,
             ended,
             taken,
+            connection: None,
         }
+    }
+
+    /// Hands fragments over as `actor_id`, the id this connection registered, and records
+    /// each in `log` as sent on connection `number`. A fragment produced while the learner
+    /// was away carries the id of an earlier registration, which a restarted learner never
+    /// issued (or issued to another actor): re-stamped, it names its sender.
+    pub fn on_connection(mut self, actor_id: String, log: Arc<FragmentLog>, number: u64) -> Self {
+        self.connection = Some(Connection {
+            actor_id,
+            log,
+            number,
+        });
+        self
     }
 }
 
@@ -107,9 +131,13 @@ impl tokio_stream::Stream for OutboxStream {
         let Ok(mut outbox) = self.outbox.lock() else {
             return Poll::Ready(None);
         };
-        let polled = outbox.poll_recv(cx);
-        if let Poll::Ready(Some(_)) = polled {
+        let mut polled = outbox.poll_recv(cx);
+        if let Poll::Ready(Some(fragment)) = &mut polled {
             self.taken.fetch_add(1, Ordering::Relaxed);
+            if let Some(connection) = &self.connection {
+                fragment.actor_id.clone_from(&connection.actor_id);
+                connection.log.sent(fragment.sequence, connection.number);
+            }
         }
         polled
     }

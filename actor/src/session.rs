@@ -17,6 +17,7 @@ use junction_common::proto;
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::lcf_column::blob_distribution;
+use crate::ledger::FragmentLog;
 use crate::metrics::ActorMetrics;
 use crate::rollout::{RolloutWorker, derive_seed};
 
@@ -27,6 +28,8 @@ pub struct ActorOptions {
     pub seed: u64,
     /// Give up once the learner has been unreachable this long (`None`: wait for ever).
     pub give_up_after: Option<Duration>,
+    /// The fragment ledger, and the instance id sent at registration.
+    pub log: Arc<FragmentLog>,
 }
 
 /// What the learner told this actor to simulate; a restarted learner must say the same.
@@ -146,6 +149,7 @@ impl Registration {
                 self.terms.run_seed ^ options.seed,
                 self.actor_id.bytes().map(u64::from).sum(),
             ),
+            log: Arc::clone(&options.log),
         }
     }
 
@@ -163,6 +167,7 @@ pub struct RolloutPlan {
     pub fragment_length: usize,
     pub scenes: usize,
     pub seed: u64,
+    pub log: Arc<FragmentLog>,
 }
 
 /// The envelope of a weights message (the blob itself is checked when decoded).
@@ -259,6 +264,8 @@ pub fn rollout_loop(
         for fragment in fragments {
             metrics.env_steps.inc_by(fragment.steps as u64);
             metrics.agent_steps.inc_by(fragment.agent_steps() as u64);
+            // Before the outbox: a process killed after handing it over had produced it.
+            plan.log.produced(&fragment);
             if !send(fragment) {
                 // The actor is stopping (run finished, learner gone, or it gave up on it).
                 return Ok(());
@@ -403,6 +410,7 @@ mod tests {
             scenes: 1,
             seed: 7,
             give_up_after: None,
+            log: Arc::new(FragmentLog::off("a")),
         };
         let one = Registration::check(&reply(&t, "actor-1"), None).unwrap();
         let two = Registration::check(&reply(&t, "actor-2"), None).unwrap();

@@ -27,6 +27,7 @@ use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
 
+use crate::ledger::FragmentLog;
 use crate::metrics::{ActorMetrics, ThreadCpu};
 use crate::session::{ActorOptions, Registration, check_weights, rollout_loop};
 
@@ -61,12 +62,16 @@ pub async fn run(
             protocol_version: PROTOCOL_VERSION,
             actor_name: options.name.clone(),
             scenes: options.scenes as u32,
+            instance: options.log.instance().to_string(),
         };
-        let timeout = options.give_up_after;
+        let joining = Joining {
+            hello,
+            connect_timeout: options.give_up_after,
+            answer: reply_tx,
+        };
+        let log = Arc::clone(&options.log);
         threads.spawn("shm-send", move || {
-            send_fragments(
-                &names, &hello, timeout, reply_tx, &outbox_rx, &abort, &metrics,
-            )
+            send_fragments(&names, joining, &outbox_rx, &abort, &metrics, &log)
         })?;
     }
     {
@@ -207,41 +212,51 @@ fn open_when_served<T>(
     }
 }
 
-/// Creates the fragment publisher, registers (reply to `registered`), then sends every
-/// fragment of `outbox` until it closes or `abort` is set.
+/// How the sender thread registers, and where the learner's answer goes.
+struct Joining {
+    hello: proto::RegisterRequest,
+    connect_timeout: Option<Duration>,
+    answer: oneshot::Sender<anyhow::Result<proto::RegisterReply>>,
+}
+
+/// Creates the fragment publisher, registers (the reply to `joining.answer`), then sends
+/// every fragment of `outbox` until it closes or `abort` is set, recording each in `log`.
 fn send_fragments(
     names: &Names,
-    hello: &proto::RegisterRequest,
-    connect_timeout: Option<Duration>,
-    registered: oneshot::Sender<anyhow::Result<proto::RegisterReply>>,
+    joining: Joining,
     outbox: &Receiver<RolloutFragment>,
     abort: &Arc<AtomicBool>,
     metrics: &ActorMetrics,
+    log: &FragmentLog,
 ) -> anyhow::Result<()> {
     let mut cpu = ThreadCpu::new(&metrics.transport_seconds);
     let setup = || -> anyhow::Result<_> {
         let node = shm::node("junction-actor")?;
-        let (fragments, register) =
-            open_when_served(&names.fragments.to_string(), connect_timeout, abort, || {
+        let (fragments, register) = open_when_served(
+            &names.fragments.to_string(),
+            joining.connect_timeout,
+            abort,
+            || {
                 let fragments = shm::fragment_service(&node, names, Side::Actor)?;
                 let register = shm::register_service(&node, names, Side::Actor)?;
                 Ok(shm::learner_subscribed(&fragments).then_some((fragments, register)))
-            })?;
+            },
+        )?;
         let publisher =
             shm::fragment_publisher(&fragments, shm::FRAGMENT_SAMPLE_BYTES, Arc::clone(abort))?;
         let client = shm::register_client(&register)?;
-        let reply = shm::register(&client, hello, ANSWER_TIMEOUT, abort)?;
+        let reply = shm::register(&client, &joining.hello, ANSWER_TIMEOUT, abort)?;
         Ok((node, fragments, publisher, reply))
     };
     let (_node, _fragments, publisher) = match setup() {
         Ok((node, fragments, publisher, reply)) => {
-            if registered.send(Ok(reply)).is_err() {
+            if joining.answer.send(Ok(reply)).is_err() {
                 return Ok(());
             }
             (node, fragments, publisher)
         }
         Err(e) => {
-            let _ = registered.send(Err(e));
+            let _ = joining.answer.send(Err(e));
             return Ok(());
         }
     };
@@ -254,7 +269,8 @@ fn send_fragments(
         let sent = shm::send_fragment(&publisher, &fragment);
         cpu.record();
         match sent {
-            Ok(_) => {}
+            // Shared memory has one connection per process: number 0.
+            Ok(_) => log.sent(fragment.sequence, 0),
             // Given up on purpose: the learner is gone or the run is over.
             Err(_) if abort.load(Ordering::Relaxed) => break,
             Err(e) => return Err(e).context("sending a fragment over shared memory"),

@@ -13,6 +13,7 @@ pub mod auth;
 pub mod fragment;
 pub mod grpc_codec;
 pub mod lcf;
+pub mod ledger;
 pub mod mlp;
 pub mod policy;
 pub mod q_policy;

@@ -21,11 +21,13 @@ pub mod names {
     pub const LEARNER_FRAGMENTS: &str = "junction_learner_fragments_total";
     pub const LEARNER_FRAGMENTS_REJECTED: &str = "junction_learner_fragments_rejected_total";
     pub const LEARNER_FRAGMENTS_DROPPED: &str = "junction_learner_fragments_dropped_total";
+    pub const LEARNER_FRAGMENTS_TRAINED: &str = "junction_learner_fragments_trained_total";
     pub const LEARNER_AGENT_STEPS_ACCEPTED: &str = "junction_learner_agent_steps_accepted_total";
     pub const LEARNER_AGENT_STEPS_DROPPED: &str = "junction_learner_agent_steps_dropped_total";
     pub const LEARNER_REQUESTS_REFUSED: &str = "junction_learner_requests_refused_total";
     pub const LEARNER_SAMPLES_TRAINED: &str = "junction_learner_samples_trained_total";
     pub const LEARNER_UPDATES: &str = "junction_learner_updates_total";
+    pub const LEARNER_CHECKPOINT_FAILURES: &str = "junction_learner_checkpoint_failures_total";
     pub const LEARNER_UPDATE_SECONDS: &str = "junction_learner_update_duration_seconds";
     pub const LEARNER_CONNECTED_ACTORS: &str = "junction_learner_connected_actors";
     pub const LEARNER_QUEUE_FRAGMENTS: &str = "junction_learner_ingest_queue_fragments";
@@ -81,6 +83,7 @@ pub mod names {
     pub const ACTOR_CONNECTED: &str = "junction_actor_connected";
     pub const ACTOR_RECONNECTS: &str = "junction_actor_reconnects_total";
     pub const ACTOR_FRAGMENTS_UNCONFIRMED: &str = "junction_actor_fragments_unconfirmed_total";
+    pub const ACTOR_FRAGMENTS_CONFIRMED: &str = "junction_actor_fragments_confirmed_total";
     pub const ACTOR_TRANSPORT_SECONDS: &str = "junction_actor_transport_seconds_total";
 }
 

@@ -1,7 +1,8 @@
 //! The hub every part of the learner meets at: the run configuration, the metrics, the newest
 //! weights (which every policy stream and the shared-memory server follow), the answer to
 //! `Status`, actor registration (ids unique across transports), stream slots and the
-//! once-per-reason log of refused fragments. The transports (`transport::grpc`,
+//! once-per-reason log of refused fragments, and the fragment ledger every part of the
+//! learner appends to. The transports (`transport::grpc`,
 //! `transport::shm`) and the trainer hold it as `Arc<Shared>`.
 
 use std::collections::HashSet;
@@ -12,7 +13,8 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore, watch};
 use tonic::Status;
 
 use junction_common::config::RunConfig;
-use junction_common::fragment::{MAX_NAME_BYTES, PROTOCOL_VERSION};
+use junction_common::fragment::{MAX_NAME_BYTES, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::ledger::{Event, Ledger};
 use junction_common::proto;
 use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
@@ -26,6 +28,8 @@ pub struct Shared {
     /// The newest weights; every WatchPolicy stream follows it.
     pub weights: watch::Sender<Arc<proto::PolicyWeights>>,
     pub status: Mutex<proto::StatusReply>,
+    /// What happened to each fragment, for the reconciliation across restarts (FAULTS.md).
+    pub ledger: Ledger,
     next_actor: AtomicU64,
     /// Rejection reasons already logged at warn level (later ones go to debug).
     logged_rejections: Mutex<HashSet<&'static str>>,
@@ -45,12 +49,19 @@ impl Shared {
                 protocol_version: PROTOCOL_VERSION,
                 ..Default::default()
             }),
+            ledger: Ledger::off(),
             next_actor: AtomicU64::new(1),
             logged_rejections: Mutex::new(HashSet::new()),
             rollout_streams: Arc::new(Semaphore::new(config.server.max_rollout_streams)),
             policy_streams: Arc::new(Semaphore::new(config.server.max_rollout_streams)),
             config,
         }
+    }
+
+    /// Records every fragment's fate in `ledger` from now on.
+    pub fn with_ledger(mut self, ledger: Ledger) -> Self {
+        self.ledger = ledger;
+        self
     }
 
     /// Actor ids handed out so far (recorded in checkpoints).
@@ -112,8 +123,14 @@ impl Shared {
     ) -> Result<proto::RegisterReply, Refusal> {
         check_version(hello.protocol_version)?;
         check_name("actor_name", &hello.actor_name)?;
+        check_name("instance", &hello.instance)?;
         let actor_id = format!("actor-{}", self.next_actor.fetch_add(1, Ordering::Relaxed));
-        tracing::info!(actor = %actor_id, name = %hello.actor_name, scenes = hello.scenes, transport, "actor registered");
+        tracing::info!(actor = %actor_id, name = %hello.actor_name, instance = %hello.instance, scenes = hello.scenes, transport, "actor registered");
+        self.ledger.record(&Event::Register {
+            actor_id: &actor_id,
+            instance: &hello.instance,
+            transport,
+        });
         let config = &self.config;
         Ok(proto::RegisterReply {
             protocol_version: PROTOCOL_VERSION,
@@ -127,8 +144,28 @@ impl Shared {
         })
     }
 
-    /// Counts a refused fragment and logs its cause once at warn level.
-    pub(crate) fn reject(&self, reason: &'static str, actor: &str, detail: &str) {
+    /// Counts `fragments` (accepted earlier) as not trained on, for `reason`, in the metrics
+    /// and the ledger.
+    pub fn drop_fragments(&self, reason: &'static str, fragments: &[RolloutFragment]) {
+        self.metrics.ingest.record_drop(reason, fragments);
+        for fragment in fragments {
+            self.ledger.record(&Event::Dropped {
+                actor_id: &fragment.actor_id,
+                seq: fragment.sequence,
+                reason,
+            });
+        }
+    }
+
+    /// Counts a refused fragment, records it in the ledger with the sender's actor id and
+    /// sequence number where the bytes said, and logs its cause once at warn level.
+    pub(crate) fn reject(&self, reason: &'static str, sender: Option<(&str, u64)>, detail: &str) {
+        self.ledger.record(&Event::Rejected {
+            actor_id: sender.map(|(actor, _)| actor),
+            seq: sender.map(|(_, seq)| seq),
+            reason,
+        });
+        let actor = sender.map_or("?", |(actor, _)| actor);
         self.metrics
             .ingest
             .fragments_rejected

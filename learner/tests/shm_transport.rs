@@ -123,6 +123,7 @@ fn connect_actor(names: &Names) -> ActorPorts {
         protocol_version: PROTOCOL_VERSION,
         actor_name: "test".into(),
         scenes: 1,
+        instance: String::new(),
     };
     let reply = shm::register(&client, &hello, Duration::from_secs(10), &abort).unwrap();
     assert!(!reply.actor_id.is_empty());
@@ -428,6 +429,7 @@ fn actors_register_and_follow_the_newest_weights_over_shm() {
             protocol_version,
             actor_name: actor_name.into(),
             scenes: 2,
+            instance: String::new(),
         }
         .encode_to_vec();
         let pending = client

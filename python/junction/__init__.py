@@ -13,6 +13,8 @@ them and refused with `ConfigError` (a `ValueError`). docs/PYTHON.md has the det
 - `junction.analysis`: progress curves, CoPO's smoothing, intervals and tables of finished runs
   (standard library only: it imports without the native module, so scripts run it from a
   checkout before `make python`).
+- `junction.ledger`: the reconciliation of a run's fragment ledgers (docs/FAULTS.md; standard
+  library only, like `junction.analysis`).
 """
 
 from __future__ import annotations

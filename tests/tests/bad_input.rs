@@ -289,6 +289,7 @@ async fn oversized_names_and_ids_are_refused_on_every_rpc() {
             protocol_version: PROTOCOL_VERSION,
             actor_name: long.clone(),
             scenes: 1,
+            instance: String::new(),
         })
         .await
         .expect_err("a 300-byte actor name");
@@ -322,6 +323,7 @@ async fn oversized_names_and_ids_are_refused_on_every_rpc() {
             protocol_version: PROTOCOL_VERSION + 1,
             actor_name: "a".into(),
             scenes: 1,
+            instance: String::new(),
         })
         .await
         .expect_err("another protocol");

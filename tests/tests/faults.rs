@@ -9,6 +9,7 @@ use std::time::Duration;
 use junction_tests::{
     Endpoints, Process, QUICK_RUN, TempDir, bin, checkpoint_versions, free_port, metric_sum,
     scrape, start_actor, start_learner, start_learner_with_env, unique_shm_name, wait_until,
+    workspace_root,
 };
 
 fn gauge(endpoints: &Endpoints, name: &str) -> f64 {
@@ -387,4 +388,106 @@ fn an_actor_stops_cleanly_on_sigterm_and_ends_by_sigint_on_ctrl_c() {
             actor.log_tail(20)
         );
     }
+}
+
+/// The fragment ledgers of a run with a killed gRPC actor, a killed learner resumed on its
+/// port and shared-memory actors dying with it balance exactly: every fragment an actor
+/// produced is trained, dropped, rejected or lost in one named way, and the losses are where
+/// the faults were.
+#[test]
+fn every_fragment_is_accounted_for_across_killed_actors_and_a_resumed_learner() {
+    let dir = TempDir::new("fault-ledger");
+    let run_dir = dir.path().join("run");
+    let run = run_dir.display().to_string();
+    let addr = format!("127.0.0.1:{}", free_port());
+    let settings = [
+        &[
+            "--max-seconds",
+            "300",
+            "--addr",
+            &addr,
+            "--local-actors",
+            "1",
+        ],
+        QUICK_RUN,
+        &["--set", "run.checkpoint_every_updates=2"],
+    ]
+    .concat();
+    let (mut learner, endpoints) = start_learner(&run_dir, dir.path(), &settings);
+    let ledger = dir.path().join("grpc-actors.jsonl");
+    let ledger_arg = ledger.display().to_string();
+    let actor_args = ["--ledger", &ledger_arg, "--connect-timeout", "0"];
+    let mut doomed = start_actor(&endpoints, dir.path(), "doomed", &actor_args);
+    assert!(
+        wait_until(Duration::from_secs(120), || version(&endpoints) >= 3.0),
+        "no versions\n{}",
+        learner.log_tail(30)
+    );
+    doomed.signal(libc::SIGKILL);
+    let _ = doomed.wait_exit(Duration::from_secs(10));
+    let mut survivor = start_actor(&endpoints, dir.path(), "survivor", &actor_args);
+    let before = version(&endpoints);
+    assert!(wait_until(Duration::from_secs(120), || version(&endpoints)
+        >= before + 3.0));
+    learner.signal(libc::SIGKILL);
+    let _ = learner.wait_exit(Duration::from_secs(10));
+
+    let resume = [&["--resume", run.as_str()], &settings[..]].concat();
+    let (mut resumed, endpoints) = start_learner(&run_dir, dir.path(), &resume);
+    let from = version(&endpoints);
+    assert!(
+        wait_until(Duration::from_secs(120), || version(&endpoints)
+            >= from + 3.0),
+        "the resumed learner did not train\n{}",
+        resumed.log_tail(30)
+    );
+    resumed.signal(libc::SIGTERM);
+    assert!(
+        resumed
+            .wait_exit(Duration::from_secs(60))
+            .is_some_and(|s| s.success())
+    );
+    assert!(survivor.wait_exit(Duration::from_secs(30)).is_some());
+
+    let local_ledgers: Vec<_> = std::fs::read_dir(run_dir.join("ledger"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    assert!(!local_ledgers.is_empty(), "local actors keep ledgers");
+    let output = std::process::Command::new("python3")
+        .env("PYTHONPATH", workspace_root().join("python"))
+        .args(["-m", "junction.ledger", "--json"])
+        .arg(run_dir.join("ledger.jsonl"))
+        .arg(&ledger)
+        .args(&local_ledgers)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let class = |name: &str| summary["classes"][name].as_u64().unwrap_or(0);
+    assert_eq!(summary["unexplained"], 0, "{summary}");
+    assert_eq!(summary["learner_processes"], 2, "{summary}");
+    assert_eq!(summary["learner_clean_stops"], 1, "{summary}");
+    // Both learners trained; the killed one's fragments after its last checkpoint, its
+    // local actor's outbox and the killed gRPC actor's show up as such.
+    assert!(class("trained") > 0, "{summary}");
+    assert!(class("lost_with_learner") > 0, "{summary}");
+    assert!(
+        class("lost_with_actor") + class("lost_in_transport") > 0,
+        "{summary}"
+    );
+    let produced = summary["produced"].as_u64().unwrap();
+    let classified: u64 = summary["classes"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(produced, classified, "{summary}");
 }

@@ -9,6 +9,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use junction_actor::grpc::{GrpcOptions, TlsOptions};
+use junction_actor::ledger::FragmentLog;
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::session::ActorOptions;
 use junction_common::config::{Layer, RunConfig};
@@ -102,6 +103,7 @@ fn learner_app_trains_an_in_process_actor_and_stops_cleanly() {
             scenes: 1,
             seed: 0,
             give_up_after: Some(Duration::from_secs(30)),
+            log: Arc::new(FragmentLog::off("in-process")),
         };
         let grpc = GrpcOptions {
             learner: format!("http://{grpc_addr}"),

@@ -91,6 +91,7 @@ async fn sender(
             protocol_version: PROTOCOL_VERSION,
             actor_name: "load".into(),
             scenes: 1,
+            instance: String::new(),
         })
         .await
         .map_err(|e| e.to_string())?

@@ -99,6 +99,7 @@ async fn every_rpc(channel: Channel, token: Option<&str>) -> Vec<(&'static str, 
             protocol_version: PROTOCOL_VERSION,
             actor_name: "probe".into(),
             scenes: 1,
+            instance: String::new(),
         })
         .await
         .map(|_| Code::Ok);

@@ -37,6 +37,8 @@ pub struct ActorCommand {
     pub scenes: u32,
     /// Actor `i` (from 1) serves /metrics on 127.0.0.1:(port + i - 1).
     pub metrics_port: Option<u16>,
+    /// Actor `i` appends its fragment ledger to `ledger_dir/local-i.jsonl` (restarts included).
+    pub ledger_dir: PathBuf,
 }
 
 impl ActorCommand {
@@ -45,6 +47,7 @@ impl ActorCommand {
         shm_name: &str,
         scenes: u32,
         metrics_port: Option<u16>,
+        ledger_dir: &Path,
     ) -> anyhow::Result<Self> {
         let exe = std::env::current_exe().context("locating the learner executable")?;
         let program = exe.with_file_name("actor");
@@ -58,6 +61,7 @@ impl ActorCommand {
             shm_name: shm_name.to_string(),
             scenes,
             metrics_port,
+            ledger_dir: ledger_dir.to_path_buf(),
         })
     }
 
@@ -70,6 +74,8 @@ impl ActorCommand {
             .args(["--seed", &index.to_string()])
             .args(["--name", &format!("local-{index}")])
             .args(["--scenes", &self.scenes.to_string()])
+            .arg("--ledger")
+            .arg(self.ledger_dir.join(format!("local-{index}.jsonl")))
             .stdin(Stdio::null())
             .process_group(0);
         if let Some(port) = self.metrics_port {

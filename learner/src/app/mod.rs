@@ -34,6 +34,7 @@ use tokio_stream::wrappers::TcpListenerStream;
 use tonic::service::interceptor::InterceptedService;
 
 use junction_common::config::{DeviceChoice, RunConfig, Simulator};
+use junction_common::ledger::{Event, Ledger};
 use junction_common::proto::learner_server::LearnerServer;
 use junction_common::telemetry::serve_metrics;
 use junction_common::{
@@ -177,7 +178,16 @@ impl LearnerApp {
         let initial = weights_message(algorithm.as_ref(), progress.version, stage.agents, false)?;
         let refused = metrics.ingest.requests_refused.clone();
         let restarts = metrics.local_actors.restarts.clone();
-        let shared = Arc::new(Shared::new(config.clone(), metrics, initial));
+        let ledger_path = run_dir.path().join("ledger.jsonl");
+        let ledger = Ledger::open(&ledger_path)
+            .with_context(|| format!("opening the fragment ledger {}", ledger_path.display()))?;
+        let resumed = run_dir.is_resume();
+        ledger.record(&Event::LearnerStart {
+            pid: std::process::id(),
+            resumed_update: resumed.then_some(progress.updates),
+            resumed_version: resumed.then_some(progress.version),
+        });
+        let shared = Arc::new(Shared::new(config.clone(), metrics, initial).with_ledger(ledger));
         shared.continue_actor_ids(start.actors_registered);
         let tls = security::server_tls(&config.server).context("[server] TLS settings")?;
         let token = security::server_token(&config.server).context("[server] auth token")?;
@@ -229,6 +239,7 @@ impl LearnerApp {
                 &shm_name,
                 local_actor_scenes,
                 local_actor_metrics_port,
+                &run_dir.path().join("ledger"),
             )?;
             Some(LocalActors::start(local_actors, command, restarts)?)
         } else {

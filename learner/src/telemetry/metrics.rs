@@ -352,6 +352,8 @@ pub struct UpdateMetrics {
     pub env_steps: IntCounter,
     pub samples_trained: IntCounter,
     pub updates: IntCounter,
+    pub fragments_trained: IntCounter,
+    pub checkpoint_failures: IntCounter,
     pub update_seconds: Histogram,
     pub trained_policy_lag: Histogram,
     pub learning_rate: Gauge,
@@ -387,6 +389,14 @@ impl UpdateMetrics {
                 "Agent-steps passed through gradient steps (counted once per epoch).",
             )?,
             updates: r.int_counter(names::LEARNER_UPDATES, "Policy updates completed.")?,
+            fragments_trained: r.int_counter(
+                names::LEARNER_FRAGMENTS_TRAINED,
+                "Accepted fragments trained on (counted when their update completes).",
+            )?,
+            checkpoint_failures: r.int_counter(
+                names::LEARNER_CHECKPOINT_FAILURES,
+                "Periodic checkpoints that could not be written (training went on).",
+            )?,
             update_seconds: r.histogram(
                 names::LEARNER_UPDATE_SECONDS,
                 "Wall time of one policy update.",

@@ -15,6 +15,7 @@ use tokio::sync::mpsc;
 use junction_common::config::{AlgoKind, LrSchedule};
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
+use junction_common::ledger::Event;
 use junction_common::proto;
 use junction_common::spec::OBS_LAYOUT_VERSION;
 use junction_common::weights;
@@ -178,14 +179,12 @@ impl Trainer {
                     let lag = self.progress.version.abs_diff(fragment.behaviour_version);
                     metrics.ingest.policy_lag.observe(lag as f64);
                     if lag > config.learner.max_policy_lag {
-                        metrics
-                            .ingest
-                            .record_drop(DROP_STALE, std::slice::from_ref(&fragment));
+                        self.shared
+                            .drop_fragments(DROP_STALE, std::slice::from_ref(&fragment));
                         tracing::debug!(lag, actor = %fragment.actor_id, "dropped stale fragment");
                     } else if let Some(reason) = self.algorithm.refusal(&fragment) {
-                        metrics
-                            .ingest
-                            .record_drop(reason, std::slice::from_ref(&fragment));
+                        self.shared
+                            .drop_fragments(reason, std::slice::from_ref(&fragment));
                         if refusals_logged.insert(reason) {
                             tracing::warn!(
                                 reason,
@@ -244,10 +243,7 @@ impl Trainer {
                     .sum::<usize>(),
                 "run ended with fragments short of a batch: counted as dropped (shutdown)"
             );
-            self.shared
-                .metrics
-                .ingest
-                .record_drop(DROP_SHUTDOWN, &pending);
+            self.shared.drop_fragments(DROP_SHUTDOWN, &pending);
         }
         self.report(&mut reporter, &window)?;
         if let Some(lcf) = &reporter.lcf {
@@ -259,6 +255,7 @@ impl Trainer {
             );
         }
         self.checkpoint()?;
+        self.shared.ledger.record(&Event::LearnerStop);
         Ok(self.progress)
     }
 
@@ -305,10 +302,7 @@ impl Trainer {
             Ok(stats) => stats,
             Err(e) => {
                 tracing::warn!(error = %e, "update skipped; its fragments are counted as dropped (update_failed)");
-                self.shared
-                    .metrics
-                    .ingest
-                    .record_drop(DROP_UPDATE_FAILED, batch);
+                self.shared.drop_fragments(DROP_UPDATE_FAILED, batch);
                 return Ok(None);
             }
         };
@@ -319,8 +313,20 @@ impl Trainer {
         self.progress.agent_steps += agent_steps;
         self.shared.metrics.update.env_steps.inc_by(env_steps);
         self.shared.metrics.update.agent_steps.inc_by(agent_steps);
+        self.shared
+            .metrics
+            .update
+            .fragments_trained
+            .inc_by(batch.len() as u64);
         self.progress.version += 1;
         self.progress.updates += 1;
+        self.shared.ledger.record(&Event::Trained {
+            update: self.progress.updates,
+            fragments: batch
+                .iter()
+                .map(|f| (f.actor_id.as_str(), f.sequence))
+                .collect(),
+        });
         self.progress.samples_trained += stats.samples_trained as u64;
         self.shared.metrics.record_update(&stats, seconds);
         self.shared.metrics.update.record_trained_lags(&lags);
@@ -340,7 +346,12 @@ impl Trainer {
         log_update(&stats, seconds);
         let every = self.shared.config.run.checkpoint_every_updates;
         if every > 0 && self.progress.updates.is_multiple_of(every) {
-            self.checkpoint()?;
+            // A full disk or a lost mount must not end the run: training goes on, and the
+            // next checkpoint tries again (the ledger counts what a crash now would cost).
+            if let Err(e) = self.checkpoint() {
+                self.shared.metrics.update.checkpoint_failures.inc();
+                tracing::error!(error = %format!("{e:#}"), version = self.progress.version, "checkpoint failed; training goes on and the next one tries again");
+            }
         }
         let progress = UpdateProgress {
             policy_loss: stats.policy_loss,
@@ -408,6 +419,10 @@ impl Trainer {
             format_version: super::checkpoint::FORMAT_VERSION,
         };
         let path = self.checkpointer.write(&meta, &policy, &state)?;
+        self.shared.ledger.record(&Event::Checkpoint {
+            update: p.updates,
+            version: p.version,
+        });
         tracing::info!(version = p.version, path = %path.display(), "checkpoint written");
         Ok(())
     }

@@ -206,6 +206,7 @@ pub fn shm(config: &RunConfig, count: usize) -> anyhow::Result<TransportReport> 
                 protocol_version: PROTOCOL_VERSION,
                 actor_name: "bench".into(),
                 scenes: 1,
+                instance: String::new(),
             };
             let client = shm::register_client(&register)?;
             shm::register(&client, &hello, Duration::from_secs(10), &abort)?;

@@ -74,7 +74,7 @@ impl Learner for LearnerService {
                     // Undecodable bytes are refused data; anything else is the peer going
                     // away mid-stream, which is not the data's fault.
                     if is_request_decode_error(&status) {
-                        shared.reject(REJECT_DECODE, "?", status.message());
+                        shared.reject(REJECT_DECODE, None, status.message());
                     } else {
                         tracing::debug!(error = %status, "rollout stream ended with an error");
                     }
@@ -82,11 +82,11 @@ impl Learner for LearnerService {
                 }
             };
             let bytes = message.encoded_len();
-            let actor = message.actor_id.clone();
+            let (actor, sequence) = (message.actor_id.clone(), message.sequence);
             let decoded = RolloutFragment::from_proto(message, dims).map_err(Rejection::from);
             let fragment = self
                 .ingest
-                .admit(TRANSPORT_GRPC, bytes, &actor, decoded)
+                .admit(TRANSPORT_GRPC, bytes, Some((&actor, sequence)), decoded)
                 .map_err(|rejection| {
                     let message = format!("fragment rejected: {}", rejection.detail);
                     if rejection.reason == "version" {

@@ -10,6 +10,7 @@ use std::sync::Arc;
 use tokio::sync::mpsc;
 
 use junction_common::fragment::{FragmentError, RolloutFragment};
+use junction_common::ledger::Event;
 use junction_common::shm_layout::LayoutError;
 use junction_common::spec::ACTION_DIM;
 
@@ -64,14 +65,15 @@ impl Ingest {
     }
 
     /// Counts `bytes` received over `transport`, then checks what they decoded to against the
-    /// run. A refusal is counted by reason and logged (once per reason at warn level);
-    /// `actor` names the sender in that log when the bytes did not say. What passes is not
-    /// accepted yet: that takes [`Ingest::enqueue`] or [`Slot::fill`].
+    /// run. A refusal is counted by reason, recorded in the ledger and logged (once per reason
+    /// at warn level); `sender` (actor id, sequence number) names it there when the bytes
+    /// did not decode to a fragment but said that much. What passes is not accepted yet: that
+    /// takes [`Ingest::enqueue`] or [`Slot::fill`].
     pub fn admit(
         &self,
         transport: &'static str,
         bytes: usize,
-        actor: &str,
+        sender: Option<(&str, u64)>,
         decoded: Result<RolloutFragment, Rejection>,
     ) -> Result<RolloutFragment, Rejection> {
         let metrics = &self.shared.metrics;
@@ -80,34 +82,36 @@ impl Ingest {
             .transport_bytes
             .with_label_values(&[transport])
             .inc_by(bytes as u64);
-        let checked = decoded.and_then(|f| {
-            if f.scenario == self.shared.config.scenario.name {
-                Ok(f)
-            } else {
-                Err(Rejection {
+        let (rejection, sender) = match decoded {
+            Ok(f) if f.scenario == self.shared.config.scenario.name => return Ok(f),
+            Ok(f) => {
+                let rejection = Rejection {
                     reason: REJECT_SCENARIO,
                     detail: format!(
                         "fragment is from scenario {:?}, this run trains {:?}",
                         f.scenario, self.shared.config.scenario.name
                     ),
-                })
+                };
+                self.shared.reject(
+                    rejection.reason,
+                    Some((&f.actor_id, f.sequence)),
+                    &rejection.detail,
+                );
+                return Err(rejection);
             }
-        });
-        if let Err(rejection) = &checked {
-            self.shared
-                .reject(rejection.reason, actor, &rejection.detail);
-        }
-        checked
+            Err(rejection) => (rejection, sender),
+        };
+        self.shared
+            .reject(rejection.reason, sender, &rejection.detail);
+        Err(rejection)
     }
 
     /// Queues an admitted fragment, waiting while the queue is full (backpressure), and counts
     /// it as accepted; returns its agent-steps. A closed queue (the run is over) takes
     /// nothing, and nothing is counted.
     pub async fn enqueue(&self, fragment: RolloutFragment) -> Result<u64, Closed> {
-        let agent_steps = fragment.agent_steps() as u64;
-        self.queue.send(fragment).await.map_err(|_| Closed)?;
-        self.count_accepted(agent_steps);
-        Ok(agent_steps)
+        let permit = self.queue.reserve().await.map_err(|_| Closed)?;
+        Ok(self.accept(permit, fragment))
     }
 
     /// A place in the queue if there is one now: a transport that must not block takes
@@ -123,10 +127,21 @@ impl Ingest {
         }
     }
 
-    fn count_accepted(&self, agent_steps: u64) {
+    /// Records the fragment as accepted in the ledger before it is queued (a learner killed
+    /// in between has it accepted and lost, which it is), queues it and counts it; returns its
+    /// agent-steps.
+    fn accept(&self, place: mpsc::Permit<'_, RolloutFragment>, fragment: RolloutFragment) -> u64 {
+        let agent_steps = fragment.agent_steps() as u64;
+        self.shared.ledger.record(&Event::Accepted {
+            actor_id: &fragment.actor_id,
+            seq: fragment.sequence,
+            agent_steps,
+        });
+        place.send(fragment);
         let metrics = &self.shared.metrics;
         metrics.ingest.fragments.inc();
         metrics.ingest.agent_steps_accepted.inc_by(agent_steps);
+        agent_steps
     }
 
     pub fn shared(&self) -> &Arc<Shared> {
@@ -145,8 +160,6 @@ pub struct Slot<'a> {
 impl Slot<'_> {
     /// Queues an admitted fragment and counts it as accepted.
     pub fn fill(self, fragment: RolloutFragment) {
-        let agent_steps = fragment.agent_steps() as u64;
-        self.permit.send(fragment);
-        self.ingest.count_accepted(agent_steps);
+        self.ingest.accept(self.permit, fragment);
     }
 }

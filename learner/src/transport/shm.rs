@@ -203,7 +203,7 @@ fn serve(ports: &Ports, ingest: &Ingest, stop: &AtomicBool) {
                     let decoded = shm_layout::decode(bytes, dims).map_err(Rejection::from);
                     let len = bytes.len();
                     drop(sample);
-                    if let Ok(fragment) = ingest.admit(TRANSPORT_SHM, len, "?", decoded) {
+                    if let Ok(fragment) = ingest.admit(TRANSPORT_SHM, len, None, decoded) {
                         slot.fill(fragment);
                     }
                 }
