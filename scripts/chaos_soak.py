@@ -67,6 +67,7 @@ SOAK_CONFIG = [
     "ppo.epochs=1",
     "ppo.minibatch_size=1024",
     "ppo.hidden=[64,64]",
+    "run.max_seconds=0",  # no budget: the soak ends the run (a resume counts it afresh)
     "run.progress_interval_s=2",
     "run.checkpoint_every_updates=10",
     "run.keep_checkpoints=2",
@@ -841,7 +842,10 @@ class Soak:
             death = {"t": round(self.now(), 2), "pid": lp.pid, "exit_code": code,
                      "during": self.active["kind"] if self.active else None,
                      "log": str(lp.log.relative_to(self.out)),
-                     "error": next((ln for ln in tail if ln.startswith("Error")), None)}
+                     "error": next((ln for ln in tail if ln.startswith("Error")),
+                                   next((ln[-200:] for ln in reversed(tail)
+                                         if "budget reached" in ln or "stop requested" in ln),
+                                        tail[-1][-200:] if tail else None))}
             self.unexpected_learner.append(death)
             self.event("learner_died_unexpectedly", **death)
             lp.expected_exit = True  # counted once
