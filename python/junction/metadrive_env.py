@@ -150,12 +150,18 @@ def _checkpoint(lane, position: np.ndarray) -> Checkpoint:
 
 def outcome(info: dict) -> int:
     """A finished MetaDrive agent's outcome, by CoPO's priority: arrival, crash, leaving the
-    road, then the step cap (anything else ended counts as a timeout)."""
+    road, then the step cap (anything else ended counts as a timeout).
+
+    A crash is a collision with a vehicle (or an object, building or pedestrian, which these
+    scenes do not have), as in Junction's simulator. Not MetaDrive's `crash`: in 0.4.3 it also
+    holds `crash_sidewalk`, set when a car leaving the road reaches the sidewalk (with
+    `out_of_road`), which counted such cars as crashes with a collision
+    (tests/test_metadrive_real.py drives one there)."""
     if info.get("arrive_dest"):
         return SUCCESS
-    if info.get("crash_vehicle") or info.get("crash_object") or info.get("crash"):
+    if any(info.get(k) for k in ("crash_vehicle", "crash_object", "crash_building", "crash_human")):
         return CRASH
-    if info.get("out_of_road"):
+    if info.get("out_of_road") or info.get("crash_sidewalk"):
         return OUT_OF_ROAD
     return TIMEOUT
 
