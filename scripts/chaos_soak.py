@@ -4,7 +4,10 @@ their own (network namespaces joined by a bridge, scripts/netns.sh), TLS and the
 seeded schedule of faults, the learner's resources sampled throughout, then a clean stop, the
 fragment ledgers reconciled, and one verdict.
 
-    scripts/chaos-soak.sh --minutes M --seed N [--out DIR] [--actors K]
+    scripts/chaos-soak.sh --minutes M --seed N [--out DIR] [--actors K] [--per-kind N]
+
+`--per-kind 0` injects nothing: K actors on hosts of their own for the ingest figures
+(summary.json "ingest": what the learner accepted and trained per second, issue 42 item 7).
 
 Standard library only (the hostile client, scripts/chaos_hostile.py, runs with the project's
 .venv for grpcio). Needs root and `ip netns`: elsewhere it exits 77 (skipped) saying why.
@@ -115,7 +118,9 @@ def make_schedule(minutes: float, seed: int, actors: int, per_kind: int | None =
     schedule."""
     total = minutes * 60.0
     rng = random.Random(seed)
-    n = per_kind or max(1, math.ceil(5 * minutes / 60.0))
+    n = per_kind if per_kind is not None else max(1, math.ceil(5 * minutes / 60.0))
+    if n == 0:
+        return []
     warm = min(60.0, max(20.0, 0.05 * total))
     tail = min(120.0, max(20.0, 0.05 * total))
     kinds = [k for k in KINDS for _ in range(n)]
@@ -648,6 +653,9 @@ class Soak:
                      agent_steps_accepted=g("junction_learner_agent_steps_accepted_total"),
                      agent_steps_trained=g("junction_learner_agent_steps_total"),
                      updates=g("junction_learner_updates_total"),
+                     bytes_received=sum(by_label(
+                         m, "junction_learner_transport_received_bytes_total",
+                         "transport").values()),
                      local_actor_restarts=g("junction_learner_local_actor_restarts_total"),
                      dropped=by_label(m, "junction_learner_fragments_dropped_total", "reason"),
                      rejected=by_label(m, "junction_learner_fragments_rejected_total", "reason"),
@@ -1155,6 +1163,7 @@ class Soak:
                                  f"{json.dumps(reconciliation.get('result'))[:500]}")
         shm_after = shm_files() - self.shm_before
         return {
+            "ingest": ingest_rates(samples),
             "ok": not self.failures,
             "failures": self.failures,
             "command": f"scripts/chaos-soak.sh --minutes {self.args.minutes} --seed "
@@ -1198,6 +1207,38 @@ class Soak:
                 f.close()
 
 
+def ingest_rates(samples: list) -> dict:
+    """Per second over the last learner process's samples after its first 30 s: fragments,
+    agent-steps and bytes accepted, agent-steps trained (the counters restart with each
+    learner process, so one process's stretch)."""
+    last_pid = next((s["learner_pid"] for s in reversed(samples)
+                     if s.get("metrics_up") and s.get("fragments_accepted") is not None), None)
+    rows = [s for s in samples if s.get("learner_pid") == last_pid
+            and s.get("fragments_accepted") is not None]
+    if not rows:
+        return {}
+    rows = [s for s in rows if s["t"] >= rows[0]["t"] + 30.0] or rows
+    first, last = rows[0], rows[-1]
+    seconds = last["t"] - first["t"]
+    if seconds <= 0:
+        return {}
+
+    def rate(key):
+        a, b = first.get(key), last.get(key)
+        return None if a is None or b is None else round((b - a) / seconds, 1)
+
+    return {"seconds": round(seconds, 1),
+            "fragments_accepted_per_s": rate("fragments_accepted"),
+            "agent_steps_accepted_per_s": rate("agent_steps_accepted"),
+            "agent_steps_trained_per_s": rate("agent_steps_trained"),
+            "mb_received_per_s": None if rate("bytes_received") is None
+            else round(rate("bytes_received") / 2**20, 2),
+            "updates_per_s": rate("updates"),
+            "connected_actors_max": max((s.get("connected_actors") or 0) for s in rows),
+            "dropped_at_end": last.get("dropped"),
+            "rss_mb_max": max((s.get("rss_mb") or 0) for s in rows)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description="Chaos soak: faults from a seed against a learner, gRPC actors, a hostile "
@@ -1207,7 +1248,7 @@ def main() -> int:
     ap.add_argument("--out", default=None, help="default: runs/chaos-soak-seed<N>-<unix time>")
     ap.add_argument("--actors", type=int, default=3, help="gRPC actors (at least 3)")
     ap.add_argument("--per-kind", type=int, default=None,
-                    help="faults of each kind (default: 5 an hour, at least 1)")
+                    help="faults of each kind (default: 5 an hour, at least 1; 0: none)")
     ap.add_argument("--prefix", default=None,
                     help="namespace prefix (default js<pid>; its namespaces are PREFIX-*)")
     ap.add_argument("--sample-interval", type=float, default=2.0)

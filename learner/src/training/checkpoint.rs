@@ -134,6 +134,32 @@ impl Checkpointer {
             std::process::id()
         ));
         fs::create_dir_all(&tmp).map_err(io("create", &tmp))?;
+        if let Err(e) = self.fill(&tmp, meta, policy, state) {
+            // A full disk must not keep what was written so far until the next start: the
+            // next checkpoint needs the space.
+            let _ = fs::remove_dir_all(&tmp);
+            return Err(e);
+        }
+        if final_path.exists() {
+            // An incomplete directory of the same name, or one a run before a restart wrote
+            // for the same version: this process's policy replaces it.
+            fs::remove_dir_all(&final_path).map_err(io("remove", &final_path))?;
+        }
+        fs::rename(&tmp, &final_path).map_err(io("rename", &tmp))?;
+        sync_dir(&self.dir)?;
+        self.last_written.set(Some(meta.version));
+        self.prune()?;
+        Ok(final_path)
+    }
+
+    /// Writes the checkpoint's files into `tmp`, each fsynced, then the directory.
+    fn fill(
+        &self,
+        tmp: &Path,
+        meta: &CheckpointMeta,
+        policy: &[u8],
+        state: &[u8],
+    ) -> Result<(), CheckpointError> {
         let meta_json =
             serde_json::to_vec_pretty(meta).map_err(|source| CheckpointError::Meta {
                 path: tmp.join(META_FILE),
@@ -156,17 +182,7 @@ impl Checkpointer {
                 std::thread::sleep(stall);
             }
         }
-        sync_dir(&tmp)?;
-        if final_path.exists() {
-            // An incomplete directory of the same name, or one a run before a restart wrote
-            // for the same version: this process's policy replaces it.
-            fs::remove_dir_all(&final_path).map_err(io("remove", &final_path))?;
-        }
-        fs::rename(&tmp, &final_path).map_err(io("rename", &tmp))?;
-        sync_dir(&self.dir)?;
-        self.last_written.set(Some(meta.version));
-        self.prune()?;
-        Ok(final_path)
+        sync_dir(tmp)
     }
 
     fn prune(&self) -> Result<(), CheckpointError> {
