@@ -11,7 +11,8 @@ fragment ledgers reconciled, and one verdict.
 
 Standard library only (the hostile client, scripts/chaos_hostile.py, runs with the project's
 .venv for grpcio). Needs root and `ip netns`: elsewhere it exits 77 (skipped) saying why.
-docs/FAULTS.md ("Soak") says what each fault does and what OUT/summary.json holds.
+docs/FAULTS.md ("Soak") says what each fault does and what OUT/summary.json holds;
+OUT/resources.svg draws the learner's resources over time (scripts/soak_figure.py).
 
 Exit status: 0 when the soak passed; 1 when it failed (OUT/summary.json "failures" says why:
 an imbalance, a learner death the soak did not cause, an actor that exited by itself, growth,
@@ -38,6 +39,9 @@ import traceback
 import urllib.request
 from datetime import datetime
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import soak_figure  # noqa: E402  (scripts/soak_figure.py: the resources over time as SVG)
 
 ROOT = Path(__file__).resolve().parent.parent
 SKIP = 77
@@ -1309,6 +1313,9 @@ def main() -> int:
                                      if not isinstance(v, Path)}) + "\n")
         summary = soak.verdict(stop, reconciliation)
         (soak.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        samples = soak_figure.read_jsonl(soak.out / "samples.jsonl")
+        if samples:
+            (soak.out / "resources.svg").write_text(soak_figure.figure(samples, soak.faults))
         line = {k: summary[k] for k in ("ok", "failures", "faults_injected", "out")}
         line["recovery_training_s"] = {
             k: {"p50": v["training_s"]["p50"], "p95": v["training_s"]["p95"]}
