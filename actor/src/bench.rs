@@ -3,9 +3,9 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
-use junction_common::spec::ACTION_DIM;
+use junction_core::config::ScenarioConfig;
+use junction_core::spec::ACTION_DIM;
 
 use junction_sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};
 use junction_sim::{Scene, SimError};

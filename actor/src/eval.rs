@@ -1,7 +1,7 @@
 //! `actor eval`: a trained policy drives every agent with its mean action (or, asked to, with
 //! actions drawn from its distribution as in training) in scenes seeded
 //! apart from training's, until enough agent episodes have finished; the episodes are
-//! aggregated into the paper's metrics with 95 % intervals (`junction_common::evaluation`).
+//! aggregated into the paper's metrics with 95 % intervals (`junction_core::evaluation`).
 //!
 //! Held-out seeds: training scene k of an actor is seeded `derive_seed(derive_seed(run_seed ^
 //! actor_seed, sum of the actor id's bytes), k + 1)`; evaluation scene k with seed S is seeded
@@ -15,9 +15,9 @@ use anyhow::Context;
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::ScenarioConfig;
-use junction_common::evaluation::{EvalActions, EvalTally, TrainingInfo};
-use junction_common::spec::ACTION_DIM;
+use junction_core::config::ScenarioConfig;
+use junction_core::evaluation::{EvalActions, EvalTally, TrainingInfo};
+use junction_core::spec::ACTION_DIM;
 
 use crate::replay::Driver;
 use crate::rollout::derive_seed;
@@ -180,7 +180,7 @@ pub fn file_safe(name: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::scenarios;
+    use junction_core::scenarios;
 
     #[test]
     fn runs_until_enough_episodes_and_repeats_itself() {

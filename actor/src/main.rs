@@ -16,11 +16,11 @@ use junction_actor::session::ActorOptions;
 use junction_actor::video::VideoWriter;
 use junction_actor::{bench, eval, grpc, shm};
 use junction_common::auth::Token;
-use junction_common::config::{AfterHorizon, ScenarioConfig};
-use junction_common::evaluation::{EVAL_FORMAT, EvalActions, EvalReport};
-use junction_common::scenarios;
 use junction_common::shutdown::end_by_sigint;
 use junction_common::telemetry::{LogFormat, init_logging, serve_metrics};
+use junction_core::config::{AfterHorizon, ScenarioConfig};
+use junction_core::evaluation::{EVAL_FORMAT, EvalActions, EvalReport};
+use junction_core::scenarios;
 
 #[derive(Parser)]
 #[command(

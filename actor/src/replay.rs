@@ -11,11 +11,11 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail, ensure};
 use rand::RngCore;
 
-use junction_common::config::ScenarioConfig;
 use junction_common::fragment::Outcome;
 use junction_common::lcf::{self, LcfDistribution};
 use junction_common::policy::{self, Policy, PolicyMeta};
-use junction_common::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+use junction_core::config::ScenarioConfig;
+use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::lcf_column::blob_distribution;
 use junction_sim::Scene;
@@ -377,7 +377,7 @@ mod tests {
     use super::*;
     use junction_common::policy::GaussianPolicy;
     use junction_common::q_policy::{ActionGrid, QPolicy};
-    use junction_common::scenarios;
+    use junction_core::scenarios;
 
     /// A fresh directory under the system's temporary directory.
     fn scratch(name: &str) -> PathBuf {

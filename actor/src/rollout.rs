@@ -6,13 +6,13 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::ScenarioConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::lcf::LcfDistribution;
 use junction_common::policy::Policy;
-use junction_common::spec::ACTION_DIM;
 use junction_common::weights::WeightsError;
+use junction_core::config::ScenarioConfig;
+use junction_core::spec::ACTION_DIM;
 
 use crate::lcf_column::LcfColumn;
 use junction_sim::{Scene, SimError};

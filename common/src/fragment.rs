@@ -11,8 +11,8 @@
 
 use crate::{lcf, proto};
 
-pub use crate::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
-pub use crate::spec::{
+pub use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+pub use junction_core::spec::{
     MAX_ACTION_DIM, MAX_AGENTS, MAX_NAME_BYTES, MAX_OBS_DIM, MAX_STEPS, PROTOCOL_VERSION,
 };
 

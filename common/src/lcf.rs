@@ -10,11 +10,11 @@ use std::collections::BTreeMap;
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-use crate::config::{LcfConfig, NeighbourhoodReward};
 use crate::fragment::RolloutFragment;
 use crate::weights::WeightsError;
+use junction_core::config::{LcfConfig, NeighbourhoodReward};
 
-pub use crate::lcf_inputs::{
+pub use junction_core::lcf_inputs::{
     FEATURES, MAX_PHI_DEG, Motion, neighbourhood_features, phi_from_observation, phi_observation,
 };
 
@@ -158,7 +158,7 @@ impl LcfDistribution {
     pub const MEAN_KEY: &'static str = "lcf_mean_deg";
     pub const STD_KEY: &'static str = "lcf_std_deg";
     /// Observation values the LCF adds to the scenario's.
-    pub const OBS_COLUMNS: usize = crate::spec::LCF_OBS_COLUMNS;
+    pub const OBS_COLUMNS: usize = junction_core::spec::LCF_OBS_COLUMNS;
 
     pub fn to_metadata(self) -> BTreeMap<String, String> {
         // f32's Display is the shortest text that parses back to the same value.
@@ -206,7 +206,7 @@ mod tests {
             alpha,
             beta,
             neighbourhood_reward: NeighbourhoodReward::Mean,
-            ..crate::config::RunConfig::default().lcf
+            ..junction_core::config::RunConfig::default().lcf
         }
     }
 

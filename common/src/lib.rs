@@ -1,13 +1,15 @@
-//! Junction's shared vocabulary: configuration, the wire contract and its codecs, the
-//! observation/action layout, the policy network, metric names, and the evaluation metrics
-//! with their confidence intervals. Both `actor` and `learner` depend on this crate and never
-//! on each other.
-
-// The pure part lives in `junction-core` (so the simulator builds without libtorch); its
-// modules are part of this crate's vocabulary under the same names.
-pub use junction_core::{
-    action_grid, activation, confidence, config, episode, evaluation, lcf_inputs, scenarios, spec,
-};
+//! The contract the actor and the learner share, and the parts of it that need libtorch,
+//! gRPC (tonic), tokio or shared memory (iceoryx2): the generated protobuf types and their
+//! codecs, `RolloutFragment` and its validation, its shared-memory layout and the services
+//! both sides open, the policy networks and their weights codec, the LCF maths over
+//! fragments, the shared token, Ctrl-C handling, and the logs and Prometheus `/metrics`
+//! endpoint both binaries serve.
+//!
+//! Who may import it: `actor`, `learner`, the workspace tests and the fuzz targets. The
+//! simulator and the Python binding must not (they stay free of libtorch); they use
+//! `junction-core`, which holds the pure vocabulary (configuration, scenarios, the
+//! observation layout, episode outcomes, evaluation). This crate builds on `junction-core`
+//! but does not re-export it: a `junction-core` module has one name, `junction_core::…`.
 
 pub mod auth;
 pub mod fragment;

@@ -11,7 +11,7 @@
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use crate::activation;
+use junction_core::activation;
 
 /// An MLP with tanh hidden activations and orthogonal initialisation (gain √2 on hidden
 /// layers, `out_gain` on the output layer, zero biases), as in well-tuned PPO implementations.

@@ -13,8 +13,8 @@ use tch::{Device, Kind, Tensor};
 
 use crate::mlp::{Mlp, MlpPass};
 use crate::q_policy::QPolicy;
-use crate::spec::OBS_LAYOUT_VERSION;
 use crate::weights::{self, Decoded, WeightsError};
+use junction_core::spec::OBS_LAYOUT_VERSION;
 
 /// Normalised observations are clipped to ± this many standard deviations.
 const OBS_CLIP: f64 = 10.0;
@@ -193,10 +193,10 @@ pub fn hidden_from_meta(decoded: &Decoded) -> Result<Vec<i64>, WeightsError> {
         .map(|h| {
             h.parse::<i64>()
                 .ok()
-                .filter(|&h| h > 0 && h <= crate::config::MAX_HIDDEN_WIDTH)
+                .filter(|&h| h > 0 && h <= junction_core::config::MAX_HIDDEN_WIDTH)
         })
         .collect::<Option<Vec<i64>>>()
-        .filter(|h| !h.is_empty() && h.len() <= crate::config::MAX_HIDDEN_LAYERS)
+        .filter(|h| !h.is_empty() && h.len() <= junction_core::config::MAX_HIDDEN_LAYERS)
         .ok_or_else(|| WeightsError::Metadata {
             key: "hidden".into(),
         })
@@ -215,7 +215,7 @@ pub fn obs_dim_from_meta(decoded: &Decoded) -> Result<i64, WeightsError> {
 }
 
 /// Where a Gaussian policy's standard deviation comes from (`ppo.action_std`).
-pub use crate::config::ActionStd;
+pub use junction_core::config::ActionStd;
 
 /// Metadata key of a blob's [`ActionStd`]; blobs without it have a global one (they predate
 /// the choice).
@@ -650,7 +650,7 @@ mod tests {
         }
         // Too many layers, even small ones.
         let mut metadata = base.to_vec();
-        let many = vec!["1"; crate::config::MAX_HIDDEN_LAYERS + 1].join(",");
+        let many = vec!["1"; junction_core::config::MAX_HIDDEN_LAYERS + 1].join(",");
         metadata.push(("hidden", &many));
         assert!(GaussianPolicy::from_bytes(&blob_with_metadata(&metadata), Device::Cpu).is_err());
     }

@@ -20,10 +20,10 @@ use crate::policy::{
     KIND_KEY, ObsNormTensors, ObsNormalizer, Policy, PolicyMeta, ensure_blob_holds,
     hidden_from_meta, hidden_to_meta, minimum_values, obs_dim_from_meta,
 };
-use crate::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 use crate::weights::{self, Decoded, WeightsError};
+use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
-pub use crate::action_grid::{ActionGrid, GridError, MAX_GRID_ACTIONS};
+pub use junction_core::action_grid::{ActionGrid, GridError, MAX_GRID_ACTIONS};
 
 /// A grid's values as blob metadata (`grid_steering`, `grid_throttle`): comma-separated.
 fn grid_values_to_meta(values: &[f32]) -> String {

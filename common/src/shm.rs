@@ -127,7 +127,7 @@ pub enum Side {
     Actor,
 }
 
-pub use crate::config::is_valid_shm_name as is_valid_name;
+pub use junction_core::config::is_valid_shm_name as is_valid_name;
 
 /// The three services of base name `base`.
 pub struct Names {

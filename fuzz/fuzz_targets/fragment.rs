@@ -8,7 +8,7 @@ use std::sync::LazyLock;
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
 
-use junction_common::config::{LcfConfig, NeighbourhoodReward, RunConfig};
+use junction_core::config::{LcfConfig, NeighbourhoodReward, RunConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::{lcf, proto};
 

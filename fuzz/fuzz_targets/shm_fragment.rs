@@ -9,7 +9,7 @@ use std::sync::LazyLock;
 
 use libfuzzer_sys::fuzz_target;
 
-use junction_common::config::{LcfConfig, NeighbourhoodReward, RunConfig};
+use junction_core::config::{LcfConfig, NeighbourhoodReward, RunConfig};
 use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
 use junction_common::{lcf, shm_layout};
 

@@ -7,10 +7,10 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::config::{AlgoKind, RunConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
-use junction_common::spec::ACTION_DIM;
+use junction_core::config::{AlgoKind, RunConfig};
+use junction_core::spec::ACTION_DIM;
 
 use crate::algo::phases::Phases;
 use crate::algo::{AlgoError, Algorithm};

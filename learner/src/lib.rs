@@ -27,8 +27,8 @@
 //!
 //! # Who may import this crate
 //! The `learner` binary, and the workspace tests (`junction-tests`) for in-process runs.
-//! Never the actor: actor and learner meet only on the wire contract in `junction-common`,
-//! which is the one Junction crate this one depends on (never `junction-core` directly).
+//! Never the actor: actor and learner meet only on the vocabulary in `junction-core` and the
+//! wire contract in `junction-common`, the two Junction crates this one depends on.
 
 pub mod algo;
 pub mod app;

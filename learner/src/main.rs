@@ -6,10 +6,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 
-use junction_common::config::{DEFAULT_TOML, Layer, RunConfig};
-use junction_common::scenarios;
 use junction_common::shutdown::end_by_sigint;
 use junction_common::telemetry::{LogFormat, init_logging};
+use junction_core::config::{DEFAULT_TOML, Layer, RunConfig};
+use junction_core::scenarios;
 use junction_learner::algo;
 use junction_learner::app::{LearnerApp, RunDir, ServeOptions, StopHandle, resolve_device};
 use junction_learner::transport::bench as transport_bench;

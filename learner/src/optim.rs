@@ -8,8 +8,8 @@
 
 use tch::{Device, Kind, Tensor};
 
-use junction_common::activation;
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::activation;
 
 pub struct Adam {
     params: Vec<Tensor>,

@@ -10,10 +10,10 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::TcpListenerStream;
 
-use junction_common::config::RunConfig;
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
+use junction_core::config::RunConfig;
 use junction_learner::hub::Shared;
 use junction_learner::telemetry::metrics::LearnerMetrics;
 use junction_learner::transport::grpc::LearnerService;

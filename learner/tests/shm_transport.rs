@@ -9,11 +9,11 @@ use std::time::{Duration, Instant};
 use prost::Message;
 use tokio::sync::mpsc;
 
-use junction_common::config::RunConfig;
 use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
+use junction_core::config::RunConfig;
 use junction_learner::hub::Shared;
 use junction_learner::telemetry::metrics::LearnerMetrics;
 use junction_learner::transport::bench::realistic_fragment;
@@ -397,7 +397,7 @@ fn a_closed_queue_accepts_nothing_over_either_transport() {
 #[test]
 fn copo_runs_take_fragments_with_the_lcf_column_over_shm() {
     let mut config = small_run(4);
-    config.learner.algo = junction_common::config::AlgoKind::Copo;
+    config.learner.algo = junction_core::config::AlgoKind::Copo;
     let mut learner = Learner::start("copo", config.clone());
     let fragment = realistic_fragment(&config, 9);
     assert_eq!(fragment.obs_dim, config.scenario.obs_dim() + 1);
@@ -456,7 +456,7 @@ fn actors_register_and_follow_the_newest_weights_over_shm() {
     assert_eq!(first.obs_dim, 91);
     assert_eq!(first.run_seed, config.run.seed);
     assert_eq!(
-        junction_common::config::ScenarioConfig::from_toml(&first.scenario_toml).unwrap(),
+        junction_core::config::ScenarioConfig::from_toml(&first.scenario_toml).unwrap(),
         config.scenario
     );
     let refused = ask(PROTOCOL_VERSION + 1);

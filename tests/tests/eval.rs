@@ -5,8 +5,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use junction_common::evaluation::METRICS;
 use junction_common::policy::GaussianPolicy;
+use junction_core::evaluation::METRICS;
 use junction_tests::{TempDir, bin};
 
 /// `<dir>/run/checkpoints/ckpt-0000000003/` holding a fresh policy for the tiny scenario and
@@ -31,7 +31,7 @@ fn checkpoint(dir: &Path) -> std::path::PathBuf {
     let run = dir.join("run");
     let ckpt = run.join("checkpoints").join("ckpt-0000000003");
     std::fs::create_dir_all(&ckpt).unwrap();
-    let scenario = junction_common::scenarios::load("tiny-straight").unwrap();
+    let scenario = junction_core::scenarios::load("tiny-straight").unwrap();
     let policy = GaussianPolicy::new(tch::Device::Cpu, scenario.obs_dim() as i64, 2, &[16], 0.0);
     std::fs::write(ckpt.join("policy.safetensors"), policy.to_bytes(3).unwrap()).unwrap();
     let meta = serde_json::json!({

@@ -12,10 +12,10 @@ use junction_actor::grpc::{GrpcOptions, TlsOptions};
 use junction_actor::ledger::FragmentLog;
 use junction_actor::metrics::ActorMetrics;
 use junction_actor::session::ActorOptions;
-use junction_common::config::{Layer, RunConfig};
 use junction_common::proto::{self, learner_client::LearnerClient};
-use junction_common::scenarios;
 use junction_common::telemetry::{LogFormat, init_logging};
+use junction_core::config::{Layer, RunConfig};
+use junction_core::scenarios;
 use junction_learner::app::{LearnerApp, RunDir, ServeOptions, StopHandle};
 use junction_tests::{TempDir, checkpoint_versions, unique_shm_name};
 

@@ -4,8 +4,8 @@
 
 use std::process::Command;
 
-use junction_common::config::{Layer, RunConfig};
-use junction_common::scenarios;
+use junction_core::config::{Layer, RunConfig};
+use junction_core::scenarios;
 use junction_sim::Scene;
 use junction_tests::{TempDir, workspace_root};
 

@@ -10,10 +10,10 @@
 
 use tch::Tensor;
 
-use junction_common::config::CurriculumConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::policy::Policy;
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::config::CurriculumConfig;
 
 use super::ippo::Ippo;
 use super::{AlgoError, Algorithm, Stage, UpdateStats};
@@ -109,7 +109,7 @@ impl Algorithm for Cl {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::config::RunConfig;
+    use junction_core::config::RunConfig;
 
     fn copo(stage_agent_steps: u64) -> Curriculum {
         Curriculum::new(&CurriculumConfig {
@@ -180,7 +180,7 @@ mod tests {
                 agents: 30
             }
         );
-        config.learner.algo = junction_common::config::AlgoKind::Cl;
+        config.learner.algo = junction_core::config::AlgoKind::Cl;
         let cl = crate::algo::configured::build(&config, tch::Device::Cpu).unwrap();
         assert_eq!(cl.name(), "cl");
         assert_eq!(

@@ -4,8 +4,8 @@
 
 use tch::Device;
 
-use junction_common::config::{AlgoKind, RunConfig};
-use junction_common::spec::ACTION_DIM;
+use junction_core::config::{AlgoKind, RunConfig};
+use junction_core::spec::ACTION_DIM;
 
 use super::ccppo_concat::Concat;
 use super::ccppo_mf::MeanField;

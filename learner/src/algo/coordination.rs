@@ -8,11 +8,11 @@ use std::collections::BTreeMap;
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 
-use junction_common::config::{LcfConfig, PpoConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, NEIGHBOUR_BUCKETS};
 use junction_common::policy::GaussianPolicy;
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::config::{LcfConfig, PpoConfig};
 
 use super::AlgoError;
 use super::batch::TrainBatch;

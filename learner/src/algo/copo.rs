@@ -30,10 +30,10 @@ use std::collections::BTreeMap;
 
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{CopoConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, LcfDistribution, MAX_PHI_DEG};
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::config::{CopoConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 
 use super::AlgoError;
 use super::batch::TrainBatch;
@@ -289,7 +289,7 @@ mod tests {
     use crate::algo::testing::{
         assert_checkpoint_round_trip_on, constant_critic_batch, neighbourhood_fragment, small_run,
     };
-    use junction_common::config::RunConfig;
+    use junction_core::config::RunConfig;
 
     /// φ of each slot in [`copo_fragment`], degrees.
     const PHI_BY_SLOT: [f32; 6] = [0.0, -45.0, 30.0, 90.0, 60.0, -90.0];

@@ -22,12 +22,12 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Reduction, Tensor};
 
-use junction_common::config::{DqnConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::policy::Policy;
 use junction_common::q_policy::{ActionGrid, QPolicy};
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::config::{DqnConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 
 use super::batch::{alive_neighbour_counts, alive_observations};
 use super::coordination::LcfReport;
@@ -380,8 +380,8 @@ mod tests {
     use crate::algo::testing::{
         assert_checkpoint_round_trip, host_state, neighbourhood_fragment, one_step_fragment,
     };
-    use junction_common::config::RunConfig;
     use junction_common::weights;
+    use junction_core::config::RunConfig;
 
     fn host(t: &Tensor) -> Vec<f32> {
         Vec::<f32>::try_from(t.to_kind(Kind::Float).flatten(0, -1)).unwrap()

@@ -41,11 +41,11 @@ use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{DynamicLcfConfig, GlobalReturn, LcfConfig, PpoConfig};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::{self, FEATURES};
 use junction_common::mlp::Mlp;
 use junction_common::weights::{self, Decoded, WeightsError};
+use junction_core::config::{DynamicLcfConfig, GlobalReturn, LcfConfig, PpoConfig};
 
 use super::AlgoError;
 use super::batch::TrainBatch;
@@ -369,7 +369,7 @@ mod tests {
         assert_checkpoint_round_trip, constant_critic_batch, host_state, neighbourhood_fragment,
         small_run,
     };
-    use junction_common::config::{DynamicLcfConfig, NeighbourhoodReward, RunConfig};
+    use junction_core::config::{DynamicLcfConfig, NeighbourhoodReward, RunConfig};
 
     /// f_ψ with every weight 0 and output bias `bias`, bounded at 90°: φ = 90°·tanh(bias)
     /// for every agent with a neighbour.

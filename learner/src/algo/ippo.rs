@@ -36,10 +36,10 @@ pub type Ippo = SharedPpo<OwnObservation>;
 mod tests {
     use crate::algo::Algorithm;
     use crate::algo::testing::{ippo, one_step_fragment};
-    use junction_common::config::{LrSchedule, RunConfig};
     use junction_common::fragment::RolloutFragment;
     use junction_common::policy::Policy;
     use junction_common::weights::{self, Decoded};
+    use junction_core::config::{LrSchedule, RunConfig};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
     use tch::Tensor;

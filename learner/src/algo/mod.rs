@@ -119,7 +119,7 @@ pub trait Algorithm {
     /// `ppo.lr_schedule`). A resumed run restores its agent-step count, so a schedule over
     /// agent-steps continues where it was; one over `run.max_seconds` starts again.
     ///
-    /// [`RunSection::budget_spent`]: junction_common::config::RunSection::budget_spent
+    /// [`RunSection::budget_spent`]: junction_core::config::RunSection::budget_spent
     fn set_progress(&mut self, _budget_spent: Option<f64>) {}
     /// One update on a batch of fragments.
     fn update(&mut self, fragments: &[RolloutFragment]) -> Result<UpdateStats, AlgoError>;

@@ -11,9 +11,9 @@
 use tch::Tensor;
 use tch::nn;
 
-use junction_common::config::SafetyConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::mlp::Mlp;
+use junction_core::config::SafetyConfig;
 
 pub struct Lagrangian {
     critic: Mlp,
@@ -83,8 +83,8 @@ impl Lagrangian {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::config::{RunConfig, SafetyMode};
     use junction_common::fragment::{EpisodeStats, Outcome};
+    use junction_core::config::{RunConfig, SafetyMode};
     use tch::Device;
 
     fn episode(total_cost: f32) -> EpisodeStats {

@@ -29,13 +29,13 @@ use rand_chacha::ChaCha8Rng;
 use tch::nn;
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::{PpoConfig, PpoObjective, RunConfig, SafetyMode};
 use junction_common::fragment::RolloutFragment;
 use junction_common::mlp::{Mlp, MlpPass};
 use junction_common::policy::{
     GaussianPolicy, Policy, gaussian_entropy, gaussian_kl, gaussian_log_prob,
 };
 use junction_common::weights::{self, Decoded, WeightsError};
+use junction_core::config::{PpoConfig, PpoObjective, RunConfig, SafetyMode};
 
 use super::batch::{
     CriticInput, Head, TrainBatch, alive_observations, assemble, epoch_order, explained_variance,
@@ -817,7 +817,7 @@ mod tests {
     use super::*;
     use crate::algo::ippo::Ippo;
     use crate::algo::testing::{self, host_state, ippo, neighbourhood_fragment, small_run};
-    use junction_common::config::{GlobalReturn, LcfConfig, NeighbourhoodReward};
+    use junction_core::config::{GlobalReturn, LcfConfig, NeighbourhoodReward};
 
     fn learner(lcf: &LcfConfig) -> Ippo {
         let mut run = small_run();

@@ -4,10 +4,10 @@
 
 use tch::{Device, Kind, Tensor};
 
-use junction_common::config::RunConfig;
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::weights::{self, Decoded};
+use junction_core::config::RunConfig;
 
 use super::Algorithm;
 use super::batch::{CriticInput, Head, NormalizedFragment, TrainBatch, assemble};

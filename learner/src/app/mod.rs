@@ -33,13 +33,13 @@ use tokio::task::JoinHandle;
 use tokio_stream::wrappers::TcpListenerStream;
 use tonic::service::interceptor::InterceptedService;
 
-use junction_common::config::{DeviceChoice, RunConfig, Simulator};
 use junction_common::ledger::{Event, Ledger};
 use junction_common::proto::learner_server::LearnerServer;
 use junction_common::telemetry::serve_metrics;
 use junction_common::{
     GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
 };
+use junction_core::config::{DeviceChoice, RunConfig, Simulator};
 
 use crate::hub::Shared;
 use crate::telemetry::metrics::LearnerMetrics;

@@ -8,8 +8,8 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, bail};
 
-use junction_common::config::RunConfig;
-use junction_common::spec::OBS_LAYOUT_VERSION;
+use junction_core::config::RunConfig;
+use junction_core::spec::OBS_LAYOUT_VERSION;
 
 use crate::algo;
 use crate::training::checkpoint::{CheckpointMeta, Checkpointer};

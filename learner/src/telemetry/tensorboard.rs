@@ -14,8 +14,8 @@ use std::path::{Path, PathBuf};
 
 use prost::Message;
 
-use junction_common::config::{AlgoKind, RunConfig, SafetyMode};
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
+use junction_core::config::{AlgoKind, RunConfig, SafetyMode};
 
 use super::progress::ProgressLine;
 

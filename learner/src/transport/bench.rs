@@ -14,7 +14,6 @@ use rand_chacha::ChaCha8Rng;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::TcpListenerStream;
 
-use junction_common::config::RunConfig;
 use junction_common::fragment::{
     EpisodeStats, FragmentError, Outcome, PROTOCOL_VERSION, RolloutFragment,
 };
@@ -22,10 +21,11 @@ use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
-use junction_common::spec::ACTION_DIM;
 use junction_common::{
     GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
 };
+use junction_core::config::RunConfig;
+use junction_core::spec::ACTION_DIM;
 
 use super::grpc::LearnerService;
 use super::ingest::Ingest;

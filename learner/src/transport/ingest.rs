@@ -12,7 +12,7 @@ use tokio::sync::mpsc;
 use junction_common::fragment::{FragmentError, RolloutFragment};
 use junction_common::ledger::Event;
 use junction_common::shm_layout::LayoutError;
-use junction_common::spec::ACTION_DIM;
+use junction_core::spec::ACTION_DIM;
 
 use crate::hub::Shared;
 use crate::telemetry::labels::REJECT_SCENARIO;

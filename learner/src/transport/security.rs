@@ -10,7 +10,7 @@ use tonic::transport::{Certificate, Identity, ServerTlsConfig};
 use tonic::{Request, Status};
 
 use junction_common::auth::{self, AuthError, Token};
-use junction_common::config::ServerSection;
+use junction_core::config::ServerSection;
 
 use crate::telemetry::labels::REFUSED_UNAUTHENTICATED;
 
