@@ -11,9 +11,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail, ensure};
 use rand::RngCore;
 
+use junction_common::any_policy;
 use junction_common::fragment::Outcome;
 use junction_common::lcf::{self, LcfDistribution};
-use junction_common::policy::{self, Policy, PolicyMeta};
+use junction_common::policy::{Policy, PolicyMeta};
 use junction_core::config::ScenarioConfig;
 use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
@@ -157,7 +158,7 @@ pub fn load_policy(
     scenario: &ScenarioConfig,
 ) -> anyhow::Result<(PolicyDriver, PolicyMeta)> {
     let (policy, meta) =
-        policy::decode(bytes, tch::Device::Cpu).context("decoding policy weights")?;
+        any_policy::decode(bytes, tch::Device::Cpu).context("decoding policy weights")?;
     let lcf = blob_distribution(bytes).context("reading the policy's LCF distribution")?;
     let columns = lcf.map_or(0, |_| LcfDistribution::OBS_COLUMNS);
     ensure!(

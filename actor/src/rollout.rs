@@ -318,7 +318,7 @@ mod tests {
             agents: 8,
             ..ScenarioConfig::default()
         };
-        let (policy, _) = junction_common::policy::decode(policy, tch::Device::Cpu).unwrap();
+        let (policy, _) = junction_common::any_policy::decode(policy, tch::Device::Cpu).unwrap();
         RolloutWorker::new(&scenario, 2, seed, 40, policy, 0, "test".into()).unwrap()
     }
 

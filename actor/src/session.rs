@@ -9,9 +9,10 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use tokio::sync::watch;
 
+use junction_common::any_policy;
 use junction_common::fragment::{MAX_NAME_BYTES, MAX_STEPS, PROTOCOL_VERSION, RolloutFragment};
 use junction_common::lcf::LcfDistribution;
-use junction_common::policy::{self, Policy};
+use junction_common::policy::Policy;
 use junction_common::proto;
 use junction_core::config::{RolloutConfig, RunConfig, ScenarioConfig};
 use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
@@ -209,7 +210,7 @@ pub fn rollout_loop(
     type Loaded = (Box<dyn Policy>, Option<LcfDistribution>);
     let load = |w: &proto::PolicyWeights| -> anyhow::Result<Loaded> {
         let (policy, meta) =
-            policy::decode(&w.data, tch::Device::Cpu).context("decoding policy weights")?;
+            any_policy::decode(&w.data, tch::Device::Cpu).context("decoding policy weights")?;
         let lcf = blob_distribution(&w.data).context("reading the policy's LCF distribution")?;
         let columns = lcf.map_or(0, |_| LcfDistribution::OBS_COLUMNS);
         if meta.obs_layout_version != OBS_LAYOUT_VERSION

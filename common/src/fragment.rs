@@ -9,7 +9,8 @@
 //! Everything that crosses a process boundary is checked by [`RolloutFragment::validate`]
 //! before use: shapes, finiteness, flags and the slot invariants above.
 
-use crate::{lcf, proto};
+use crate::proto;
+use junction_core::lcf_inputs;
 
 pub use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
 pub use junction_core::spec::{
@@ -56,7 +57,7 @@ pub struct RolloutFragment {
     pub bootstrap_obs: Vec<f32>,
     pub neighbour_offsets: Vec<u32>,
     pub neighbour_ids: Vec<u32>,
-    /// S_N per (step, slot), `lcf::FEATURES` each.
+    /// S_N per (step, slot), `lcf_inputs::FEATURES` each.
     pub lcf_features: Vec<f32>,
     pub episodes: Vec<EpisodeStats>,
     /// Episodes of human-driven vehicles (not trained on; counted separately).
@@ -339,7 +340,7 @@ impl RolloutFragment {
             (
                 "lcf_features",
                 self.lcf_features.len(),
-                cells * lcf::FEATURES,
+                cells * lcf_inputs::FEATURES,
             ),
         ];
         for (field, got, want) in lengths {
@@ -499,7 +500,7 @@ pub(crate) mod tests {
             bootstrap_obs: vec![0.1; agents * obs_dim],
             neighbour_offsets: vec![0, 1, 2, 3, 4, 4, 4],
             neighbour_ids: vec![1, 0, 1, 0],
-            lcf_features: (0..cells * lcf::FEATURES)
+            lcf_features: (0..cells * lcf_inputs::FEATURES)
                 .map(|i| i as f32 / 40.0)
                 .collect(),
             episodes: vec![EpisodeStats {

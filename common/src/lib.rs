@@ -11,6 +11,7 @@
 //! observation layout, episode outcomes, evaluation). This crate builds on `junction-core`
 //! but does not re-export it: a `junction-core` module has one name, `junction_core::…`.
 
+pub mod any_policy;
 pub mod auth;
 pub mod fragment;
 pub mod grpc_codec;

@@ -2,7 +2,8 @@
 //! a grid of actions (DQN's, [`crate::q_policy`]), with the observation normaliser's statistics
 //! stored beside the weights so actors normalise exactly as the learner trained. One parameter
 //! set serves every agent (parameter sharing). Actors, `actor render` and evaluation drive
-//! either kind through the [`Policy`] trait; the blob's metadata says which kind it is.
+//! either kind through the [`Policy`] trait; the blob's metadata says which kind it is, and
+//! `any_policy::decode` rebuilds whichever it holds.
 
 use std::collections::BTreeMap;
 
@@ -12,7 +13,6 @@ use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
 use crate::mlp::{Mlp, MlpPass};
-use crate::q_policy::QPolicy;
 use crate::weights::{self, Decoded, WeightsError};
 use junction_core::spec::OBS_LAYOUT_VERSION;
 
@@ -157,24 +157,6 @@ pub trait Policy: Send + std::fmt::Debug {
     fn deterministic(&self, obs: &[f32]) -> Result<Vec<f32>, WeightsError>;
     /// The weights blob broadcast to actors and stored in checkpoints.
     fn to_bytes(&self, version: u64) -> Result<Vec<u8>, WeightsError>;
-}
-
-/// Rebuilds whichever policy a blob holds (its metadata says which), on `device`.
-pub fn decode(bytes: &[u8], device: Device) -> Result<(Box<dyn Policy>, PolicyMeta), WeightsError> {
-    let decoded = Decoded::decode(bytes)?;
-    match decoded.metadata.get(KIND_KEY).map(String::as_str) {
-        None | Some(GaussianPolicy::KIND) => {
-            let (policy, meta) = GaussianPolicy::from_decoded(decoded, device)?;
-            Ok((Box::new(policy), meta))
-        }
-        Some(QPolicy::KIND) => {
-            let (policy, meta) = QPolicy::from_decoded(decoded, device)?;
-            Ok((Box::new(policy), meta))
-        }
-        Some(_) => Err(WeightsError::Metadata {
-            key: KIND_KEY.to_string(),
-        }),
-    }
 }
 
 /// `hidden` metadata: layer sizes joined by commas.
@@ -417,7 +399,7 @@ impl GaussianPolicy {
         Self::from_decoded(Decoded::decode(bytes)?, device)
     }
 
-    fn from_decoded(
+    pub(crate) fn from_decoded(
         mut decoded: Decoded,
         device: Device,
     ) -> Result<(Self, PolicyMeta), WeightsError> {

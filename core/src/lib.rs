@@ -15,6 +15,5 @@ pub mod config;
 pub mod episode;
 pub mod evaluation;
 pub mod lcf_inputs;
-pub mod presets;
 pub mod scenarios;
 pub mod spec;

@@ -149,7 +149,7 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::algo::testing::ippo;
+    use crate::algo::ippo::fixtures::ippo;
 
     #[test]
     fn the_synthetic_batch_is_a_valid_training_batch_of_the_run_shape() {

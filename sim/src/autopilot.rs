@@ -7,7 +7,7 @@ use parry2d::math::Vec2;
 use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
 use super::Scene;
-use super::network::{RoadNetwork, Route};
+use super::network::{bend_speed, route_point, tightest_bend};
 use super::vehicle::{MAX_STEER_RAD, WHEELBASE};
 
 /// Brake when a lidar beam within this angle of straight ahead sees a body closer than
@@ -25,34 +25,6 @@ pub const CRUISE_SPEED_MPS: f32 = 10.0;
 const THROTTLE_PER_MPS: f32 = 0.5;
 const BRAKE_DECEL_PER_MPS: f32 = 3.0;
 const MAX_BRAKE_DECEL: f32 = 6.0;
-/// Bends are taken at the speed that keeps lateral acceleration at this (m/s²).
-const COMFORT_LATERAL_ACCEL: f32 = 3.0;
-
-/// The centre-line point `progress` metres along `route` (extrapolated past its end).
-pub fn route_point(network: &dyn RoadNetwork, route: &Route, progress: f32) -> Vec2 {
-    let i = route
-        .offsets
-        .iter()
-        .rposition(|&o| o <= progress)
-        .unwrap_or(0);
-    network.lanes()[route.lanes[i]].point(progress - route.offsets[i])
-}
-
-/// The smallest bend radius (m) of this lane and the next; infinite on straight road.
-fn tightest_bend(network: &dyn RoadNetwork, route: &Route, lane_index: usize) -> f32 {
-    route.lanes[lane_index..route.lanes.len().min(lane_index + 2)]
-        .iter()
-        .map(|&l| network.lanes()[l].bend().0.abs())
-        .filter(|&r| r > 0.0)
-        .fold(f32::INFINITY, f32::min)
-}
-
-/// The speed (m/s) at which the bends of this lane and the next keep lateral acceleration
-/// comfortable; infinite on straight road.
-pub fn bend_speed(network: &dyn RoadNetwork, route: &Route, lane_index: usize) -> f32 {
-    (COMFORT_LATERAL_ACCEL * tightest_bend(network, route, lane_index)).sqrt()
-}
-
 /// Writes `[steer, throttle_brake]` for every alive slot into `out` (zeros elsewhere).
 pub fn autopilot_actions(scene: &Scene, target_speed_mps: f32, out: &mut [f32]) {
     out.fill(0.0);

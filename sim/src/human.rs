@@ -12,9 +12,8 @@ use parry2d::math::Vec2;
 
 use junction_core::config::HumanConfig;
 
-use super::autopilot::{bend_speed, route_point};
-use super::network::RoadNetwork;
-use super::scene::Car;
+use super::car::Car;
+use super::network::{RoadNetwork, bend_speed, route_point};
 use super::vehicle::{LENGTH, MASS, MAX_ENGINE_FORCE, MAX_STEER_RAD, WHEELBASE};
 
 /// Bodies farther ahead than this do not constrain the driver.

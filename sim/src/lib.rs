@@ -9,6 +9,7 @@
 
 mod angle;
 pub mod autopilot;
+mod car;
 mod grid;
 mod human;
 pub mod intersection;

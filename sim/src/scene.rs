@@ -18,6 +18,7 @@ use junction_core::spec::{ACTION_DIM, LIDAR_OFFSET};
 
 use super::SimError;
 use super::angle;
+use super::car::Car;
 use super::grid::Grid;
 use super::human::{self, Seen};
 use super::intersection::Intersection;
@@ -32,25 +33,6 @@ use super::vehicle::{BOUNDING_RADIUS, Dynamics, Kinematics, LENGTH, WIDTH};
 const ARRIVAL_TOLERANCE: f32 = 5.0;
 /// Grid cell size: a few car lengths, so collision queries touch a handful of cells.
 const GRID_CELL: f32 = 10.0;
-
-/// One learning agent.
-#[derive(Debug, Clone)]
-pub(super) struct Car {
-    pub kin: Kinematics,
-    pub route: usize,
-    pub lane_index: usize,
-    pub s: f32,
-    pub lateral: f32,
-    /// Distance travelled along the route (metres).
-    pub progress: f32,
-    pub age: u32,
-    total_reward: f32,
-    abs_accel_sum: f32,
-    max_abs_accel: f32,
-    collisions: u32,
-    energy_kj: f32,
-    total_cost: f32,
-}
 
 /// A crashed car left on the road for a while.
 #[derive(Debug, Clone)]

@@ -10,7 +10,8 @@
 //! (`[scenario]`'s own keys, gathering the checks of its sub-sections in `roads.rs`,
 //! `vehicles.rs` and `reward.rs`), `ppo.rs`, `lcf.rs` (`[lcf]`, `[copo]`, `[dynamic_lcf]`,
 //! `[ccppo]`), `dqn.rs`, `safety.rs`, `learner.rs` (`[learner]`, `[curriculum]`),
-//! `server.rs`; `layers.rs` parses and merges the layers. This file holds the whole run
+//! `server.rs`; `layers.rs` parses and merges the layers, `presets.rs` holds the shipped
+//! presets (`--preset NAME`). This file holds the whole run
 //! configuration, loading, and `validate`: each section's problems, then the rules that span
 //! sections.
 
@@ -22,6 +23,7 @@ mod layers;
 mod lcf;
 mod learner;
 mod ppo;
+mod presets;
 mod reward;
 mod roads;
 mod run;
@@ -135,7 +137,7 @@ impl RunConfig {
         for layer in layers {
             match layer {
                 Layer::Preset(name) => {
-                    let text = crate::presets::text(name)?;
+                    let text = presets::text(name)?;
                     merge(&mut tree, parse_toml(text, &format!("preset {name}"))?, "")?;
                 }
                 Layer::File(path) => {

@@ -109,7 +109,6 @@ impl Algorithm for Cl {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_core::config::RunConfig;
 
     fn copo(stage_agent_steps: u64) -> Curriculum {
         Curriculum::new(&CurriculumConfig {
@@ -146,55 +145,6 @@ mod tests {
             Stage {
                 index: 2,
                 agents: 23
-            }
-        );
-    }
-
-    #[test]
-    fn the_default_schedule_is_copos_and_other_algorithms_train_every_agent() {
-        let config = RunConfig::default();
-        let c = Curriculum::new(&config.curriculum);
-        assert_eq!(
-            c.stage(0, 30),
-            Stage {
-                index: 0,
-                agents: 8
-            }
-        );
-        assert_eq!(c.stage(499_999, 30).index, 0);
-        assert_eq!(c.stage(500_000, 30).index, 1);
-        assert_eq!(
-            c.stage(1_500_000, 30),
-            Stage {
-                index: 3,
-                agents: 30
-            }
-        );
-        let mut config = config;
-        config.ppo.hidden = vec![8];
-        let ippo = crate::algo::configured::build(&config, tch::Device::Cpu).unwrap();
-        assert_eq!(
-            ippo.stage(0, 30),
-            Stage {
-                index: 0,
-                agents: 30
-            }
-        );
-        config.learner.algo = junction_core::config::AlgoKind::Cl;
-        let cl = crate::algo::configured::build(&config, tch::Device::Cpu).unwrap();
-        assert_eq!(cl.name(), "cl");
-        assert_eq!(
-            cl.stage(0, 30),
-            Stage {
-                index: 0,
-                agents: 8
-            }
-        );
-        assert_eq!(
-            cl.stage(2_000_000, 30),
-            Stage {
-                index: 3,
-                agents: 30
             }
         );
     }

@@ -285,9 +285,12 @@ mod tests {
     use super::*;
     use crate::algo::Algorithm;
     use crate::algo::ippo::OwnObservation;
+    use crate::algo::ippo::fixtures::constant_critic_batch;
+    use crate::algo::meta_lcf::{log_prob_jvp, objective_gradient};
+    use crate::algo::ppo::clipped_surrogate;
     use crate::algo::shared_ppo::SharedPpo;
     use crate::algo::testing::{
-        assert_checkpoint_round_trip_on, constant_critic_batch, neighbourhood_fragment, small_run,
+        F64, Tiny, assert_checkpoint_round_trip_on, neighbourhood_fragment, small_run, t,
     };
     use junction_core::config::RunConfig;
 
@@ -551,5 +554,114 @@ mod tests {
             bounded.abs() > 15.0,
             "μ = {bounded}°: the meta step did not move it"
         );
+    }
+
+    /// J(ψ) = J_G(θ + η·∇θ L_in(θ, ψ)), L_in = mean_k[A_C,k(ψ)/s·log π_θ(a_k|s_k)]: one plain
+    /// SGD step of the policy on CoPO's coordinated advantage, then the global objective.
+    struct Problem {
+        theta: Tiny,
+        obs: Tensor,
+        actions: Tensor,
+        behaviour: Tensor,
+        individual: Tensor,
+        neighbourhood: Tensor,
+        global: Tensor,
+        noise: Tensor,
+        scale: f64,
+        eta: f64,
+        clip: f64,
+    }
+
+    impl Problem {
+        fn coordinated(&self, psi: &Tensor) -> Tensor {
+            coordinated_advantage(
+                &reparameterised_phi(psi, &self.noise, f64::from(MAX_PHI_DEG)),
+                &self.individual,
+                &self.neighbourhood,
+            ) / self.scale
+        }
+
+        fn updated_policy(&self, psi: &Tensor) -> Tiny {
+            let inner = (self.coordinated(psi).detach()
+                * self.theta.log_probs(&self.obs, &self.actions))
+            .mean(Kind::Double);
+            let step = objective_gradient(&inner, &self.theta.params()).unwrap();
+            self.theta.moved(&step, self.eta)
+        }
+
+        fn global_objective(&self, policy: &Tiny) -> Tensor {
+            -clipped_surrogate(
+                &policy.log_probs(&self.obs, &self.actions),
+                &self.behaviour,
+                &self.global,
+                self.clip,
+            )
+            .loss
+        }
+
+        fn objective(&self, psi: &[f64]) -> f64 {
+            let psi = t(psi, &[2]);
+            f64::try_from(self.global_objective(&self.updated_policy(&psi))).unwrap()
+        }
+    }
+
+    #[test]
+    fn the_meta_gradient_matches_central_differences_of_the_global_objective() {
+        let _rng = crate::test_rng::seeded(11);
+        let rows = 7;
+        let theta = Tiny {
+            w1: Tensor::randn([3, 4], F64).set_requires_grad(true),
+            w2: Tensor::randn([4, 2], F64).set_requires_grad(true),
+            log_std: t(&[-0.3, 0.2], &[2]).set_requires_grad(true),
+        };
+        let obs = Tensor::randn([rows, 3], F64);
+        let actions = Tensor::randn([rows, 2], F64);
+        // Behaviour log-probabilities near the policy's, so every ratio stays inside the clip
+        // range (J is smooth there).
+        let behaviour =
+            theta.log_probs(&obs, &actions).detach() + Tensor::randn([rows], F64) * 0.01;
+        let problem = Problem {
+            theta,
+            obs,
+            actions,
+            behaviour,
+            individual: Tensor::randn([rows], F64),
+            neighbourhood: Tensor::randn([rows], F64),
+            global: Tensor::randn([rows], F64),
+            noise: Tensor::randn([rows], F64),
+            scale: 1.7,
+            eta: 0.05,
+            clip: 0.3,
+        };
+        // ψ = (atanh(μ/90°), ln(σ/90°)): μ = 20°, σ = 15°.
+        let psi0 = [(20.0f64 / 90.0).atanh(), (15.0f64 / 90.0).ln()];
+
+        // Analytic: g at θ', c through θ, then η·∇ψ mean_k[c_k·A_C,k(ψ)].
+        let psi = t(&psi0, &[2]).set_requires_grad(true);
+        let after = problem.updated_policy(&psi.detach());
+        let g = objective_gradient(&problem.global_objective(&after), &after.params()).unwrap();
+        let log_probs = problem.theta.log_probs(&problem.obs, &problem.actions);
+        let c = log_prob_jvp(&log_probs, &problem.theta.params(), &g).unwrap();
+        let meta = (c * problem.coordinated(&psi)).mean(Kind::Double) * problem.eta;
+        let analytic =
+            Vec::<f64>::try_from(&objective_gradient(&meta, &[psi]).unwrap()[0]).unwrap();
+
+        let h = 1e-5;
+        for i in 0..2 {
+            let (mut up, mut down) = (psi0, psi0);
+            up[i] += h;
+            down[i] -= h;
+            let numeric = (problem.objective(&up) - problem.objective(&down)) / (2.0 * h);
+            assert!(
+                numeric.abs() > 1e-4,
+                "a vanishing gradient proves nothing: {numeric}"
+            );
+            let error = (analytic[i] - numeric).abs() / numeric.abs();
+            assert!(
+                error < 1e-6,
+                "∂J/∂ψ[{i}]: analytic {} vs central difference {numeric}",
+                analytic[i]
+            );
+        }
     }
 }

@@ -364,10 +364,10 @@ mod tests {
     use crate::algo::Algorithm;
     use crate::algo::coordination::FixedLcf;
     use crate::algo::ippo::OwnObservation;
+    use crate::algo::ippo::fixtures::constant_critic_batch;
     use crate::algo::shared_ppo::{SharedPpo, copy_networks};
     use crate::algo::testing::{
-        assert_checkpoint_round_trip, constant_critic_batch, host_state, neighbourhood_fragment,
-        small_run,
+        assert_checkpoint_round_trip, host_state, neighbourhood_fragment, small_run,
     };
     use junction_core::config::{DynamicLcfConfig, NeighbourhoodReward, RunConfig};
 

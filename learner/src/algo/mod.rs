@@ -5,8 +5,11 @@
 //! algorithms (`cl` → `ippo`, `ccppo_concat`, `ccppo_mf` → `shared_ppo`; `dynamic_lcf` →
 //! `copo` → `meta_lcf`; `dqn` → `replay`) → what they share (`shared_ppo` → `coordination`,
 //! `ppo`, `safety`; `meta_lcf` → `ppo`; all of them → `batch` → `gae`) → this file, what an
-//! algorithm is, reports and fails with → [`phases`]. The tests' fixtures are `testing`'s,
-//! compiled for tests only.
+//! algorithm is, reports and fails with → [`phases`]. The tests keep to the same order: the
+//! fixtures that need no algorithm are `testing`'s (compiled for tests only), those that
+//! build an IPPO learner are `ippo::fixtures`, and a test that needs an algorithm above its
+//! own file lives above it (the shared update's options in `ippo`, the meta-gradient check
+//! in `copo`, the configured curriculum in `configured`).
 
 pub mod batch;
 pub mod ccppo_concat;

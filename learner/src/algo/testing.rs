@@ -1,20 +1,20 @@
-//! Fixtures for the algorithms' tests: small runs, a fragment with a known neighbourhood, a
-//! hand-checkable batch and a checkpoint round trip. Compiled for tests only, and on top of
-//! the algorithms: it imports them, none of them imports it outside its tests.
+//! Fixtures for the algorithms' tests that need no algorithm: small runs, a fragment with a
+//! known neighbourhood, one-step bandit fragments, critic rows of an identity-normalised
+//! fragment, a checkpoint round trip for any `Algorithm`, and a tiny f64 Gaussian policy for
+//! gradient checks. Compiled for tests only. It imports nothing from `algo/` but the common
+//! ground (`Algorithm`, the batch types), so any algorithm's tests may use it; the fixtures
+//! that build an IPPO learner are in `ippo::fixtures`, above IPPO.
 
 use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
+use junction_common::policy::gaussian_log_prob;
 use junction_common::weights::{self, Decoded};
 use junction_core::config::RunConfig;
 
 use super::Algorithm;
-use super::batch::{CriticInput, Head, NormalizedFragment, TrainBatch, assemble};
-use super::coordination::{Coordination, FixedLcf};
-use super::ippo::{Ippo, OwnObservation};
-use super::phases::Phases;
-use super::shared_ppo::SharedPpo;
+use super::batch::{CriticInput, NormalizedFragment};
 
 /// The defaults with a small network (hidden [8]) and seed 7.
 pub fn small_run() -> RunConfig {
@@ -22,19 +22,6 @@ pub fn small_run() -> RunConfig {
     run.ppo.hidden = vec![8];
     run.run.seed = 7;
     run
-}
-
-/// IPPO with the run's fixed LCF and safety option, on the CPU.
-pub fn ippo(run: &RunConfig, obs_dim: usize, action_dim: usize) -> Ippo {
-    SharedPpo::new(
-        "ippo",
-        OwnObservation,
-        Box::new(FixedLcf::new(&run.lcf)),
-        run,
-        obs_dim,
-        action_dim,
-        Device::Cpu,
-    )
 }
 
 /// 2 steps × 6 slots, obs_dim = action_dim = 2, all alive except slot 5 at t = 1 (done at
@@ -100,41 +87,6 @@ pub fn neighbourhood_fragment() -> RolloutFragment {
         lcf_features,
         ..RolloutFragment::default()
     }
-}
-
-/// The batch of `fragment` with every critic predicting `value` (so GAE can be worked by
-/// hand): `coordination`'s heads, `gamma` where a head does not set its own.
-pub fn constant_critic_batch(
-    coordination: &dyn Coordination,
-    fragment: &RolloutFragment,
-    value: f32,
-    gamma: f32,
-    lambda: f32,
-) -> TrainBatch {
-    let heads: Vec<Head> = coordination
-        .signals()
-        .iter()
-        .enumerate()
-        .map(|(index, signal)| Head {
-            rewards: vec![coordination.rewards(index, fragment).unwrap()],
-            value: Box::new(move |x: &Tensor| {
-                Tensor::full([x.size()[0]], f64::from(value), (Kind::Float, x.device()))
-            }),
-            gamma: signal.gamma.unwrap_or(gamma),
-            outlives_agent: signal.outlives_agent,
-        })
-        .collect();
-    let fragments = std::slice::from_ref(fragment);
-    assemble(
-        fragments,
-        &OwnObservation,
-        &heads,
-        Tensor::shallow_clone,
-        lambda,
-        Device::Cpu,
-        &mut Phases::default(),
-    )
-    .unwrap()
 }
 
 /// `raw` as if the normaliser were the identity, so expected rows can be hand-computed.
@@ -238,4 +190,45 @@ pub fn assert_checkpoint_round_trip_on<A: Algorithm>(
         host_state(&b),
         "state after the next update"
     );
+}
+
+/// f64 tensors on the CPU, for gradients checked against finite differences.
+pub const F64: (Kind, Device) = (Kind::Double, Device::Cpu);
+
+/// `values` as a tensor of `shape`.
+pub fn t(values: &[f64], shape: &[i64]) -> Tensor {
+    Tensor::from_slice(values).reshape(shape)
+}
+
+/// A tiny Gaussian policy in f64: mean = tanh(s·W1)·W2, log-std a free vector.
+pub struct Tiny {
+    pub w1: Tensor,
+    pub w2: Tensor,
+    pub log_std: Tensor,
+}
+
+impl Tiny {
+    pub fn params(&self) -> Vec<Tensor> {
+        vec![
+            self.w1.shallow_clone(),
+            self.w2.shallow_clone(),
+            self.log_std.shallow_clone(),
+        ]
+    }
+
+    pub fn log_probs(&self, obs: &Tensor, actions: &Tensor) -> Tensor {
+        let mean = obs.matmul(&self.w1).tanh().matmul(&self.w2);
+        gaussian_log_prob(&mean, &self.log_std.expand_as(&mean), actions)
+    }
+
+    /// θ + η·step, as fresh leaves.
+    pub fn moved(&self, step: &[Tensor], eta: f64) -> Tiny {
+        let p = self.params();
+        let leaf = |i: usize| (&p[i] + &step[i] * eta).detach().set_requires_grad(true);
+        Tiny {
+            w1: leaf(0),
+            w2: leaf(1),
+            log_std: leaf(2),
+        }
+    }
 }

@@ -3,12 +3,12 @@
 //! changes how a run is trained, never the task (scene, rewards, episode semantics), so its
 //! results compare with the defaults' in what is learned, not in how it is trained.
 
-use crate::config::ConfigError;
+use super::ConfigError;
 
 /// (name, TOML) of every shipped preset.
 pub const SHIPPED: &[(&str, &str)] = &[
-    ("fast", include_str!("../../presets/fast.toml")),
-    ("gpu", include_str!("../../presets/gpu.toml")),
+    ("fast", include_str!("../../../presets/fast.toml")),
+    ("gpu", include_str!("../../../presets/gpu.toml")),
 ];
 
 /// The TOML of a shipped preset.
