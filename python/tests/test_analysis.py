@@ -313,13 +313,13 @@ def test_the_command_line_tables_report_and_figures(tmp_path):
 def test_every_table_of_results_md_is_what_its_command_prints():
     """Each table RESULTS.md prints below a `python -m junction.analysis` command is that
     command's output from the summaries in results/ (results-md prints them all)."""
-    from junction.analysis import results_md
+    from junction.analysis import cli, results_md
     page = PYTHON.parent / "RESULTS.md"
     found = results_md.commands(page.read_text())
     assert len(found) >= 5, "RESULTS.md names the commands of its tables"
     for command, argv, rows in found:
         assert rows, f"no table follows {command}"
-        printed = results_md.run(argv).splitlines()
+        printed = results_md.run(argv, cli.main).splitlines()
         missing = [row for row in rows if row not in printed]
         assert not missing, f"{command}\nprints other rows than RESULTS.md's:\n" + "\n".join(
             missing[:5])

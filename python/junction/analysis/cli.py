@@ -186,7 +186,7 @@ def main(argv=None):
             parser.error(f"not time-to-success.py's lines: {e!r}")
     elif args.command == "results-md":
         from .results_md import print_all
-        print_all()
+        print_all(main)
 
 
 def tables_text(records, by, order, args) -> str:

@@ -11,6 +11,7 @@ import os
 import re
 import shlex
 from pathlib import Path
+from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[3]
 PREFIX = "PYTHONPATH=python python3 -m junction.analysis "
@@ -46,9 +47,9 @@ def commands(text: str) -> list[tuple[str, list[str], list[str]]]:
     return out
 
 
-def run(argv: list[str]) -> str:
-    """What `python -m junction.analysis ARGV` prints, run from the repository root."""
-    from .cli import main
+def run(argv: list[str], main: Callable[[list[str]], object]) -> str:
+    """What `main(ARGV)` (the command line's entry, `cli.main`, handed in so this module does
+    not import the command line that imports it) prints, run from the repository root."""
     buffer = io.StringIO()
     cwd = os.getcwd()
     try:
@@ -60,7 +61,7 @@ def run(argv: list[str]) -> str:
     return buffer.getvalue()
 
 
-def print_all(page: Path = ROOT / "RESULTS.md") -> None:
+def print_all(main: Callable[[list[str]], object], page: Path = ROOT / "RESULTS.md") -> None:
     for command, argv, _ in commands(page.read_text()):
         print(f"```sh\n{command}\n```\n")
-        print(run(argv))
+        print(run(argv, main))
