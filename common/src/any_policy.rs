@@ -32,16 +32,12 @@ pub fn decode(bytes: &[u8], device: Device) -> Result<(Box<dyn Policy>, PolicyMe
 mod tests {
     use super::*;
     use crate::policy::ObsNormalizer;
+    use crate::q_policy::tests::metadrive_grid;
     use crate::weights;
     use junction_core::action_grid::ActionGrid;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
     use tch::Tensor;
-
-    fn metadrive_grid() -> ActionGrid {
-        let values = vec![-1.0, -0.5, 0.0, 0.5, 1.0];
-        ActionGrid::new(values.clone(), values).unwrap()
-    }
 
     #[test]
     fn the_blob_says_its_kind_and_round_trips_grid_epsilon_and_weights() {

@@ -283,12 +283,13 @@ impl Policy for QPolicy {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
-    fn metadrive_grid() -> ActionGrid {
+    /// MetaDrive's 5 × 5 discrete action grid (also the fixture of `any_policy`'s tests).
+    pub(crate) fn metadrive_grid() -> ActionGrid {
         let values = vec![-1.0, -0.5, 0.0, 0.5, 1.0];
         ActionGrid::new(values.clone(), values).unwrap()
     }
