@@ -82,8 +82,8 @@ impl Ingest {
             .transport_bytes
             .with_label_values(&[transport])
             .inc_by(bytes as u64);
-        let (rejection, sender) = match decoded {
-            Ok(f) if f.scenario == self.shared.config.scenario.name => return Ok(f),
+        match decoded {
+            Ok(f) if f.scenario == self.shared.config.scenario.name => Ok(f),
             Ok(f) => {
                 let rejection = Rejection {
                     reason: REJECT_SCENARIO,
@@ -97,13 +97,14 @@ impl Ingest {
                     Some((&f.actor_id, f.sequence)),
                     &rejection.detail,
                 );
-                return Err(rejection);
+                Err(rejection)
             }
-            Err(rejection) => (rejection, sender),
-        };
-        self.shared
-            .reject(rejection.reason, sender, &rejection.detail);
-        Err(rejection)
+            Err(rejection) => {
+                self.shared
+                    .reject(rejection.reason, sender, &rejection.detail);
+                Err(rejection)
+            }
+        }
     }
 
     /// Queues an admitted fragment, waiting while the queue is full (backpressure), and counts
