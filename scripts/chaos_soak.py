@@ -1171,7 +1171,8 @@ class Soak:
             "ok": not self.failures,
             "failures": self.failures,
             "command": f"scripts/chaos-soak.sh --minutes {self.args.minutes} --seed "
-                       f"{self.args.seed} --actors {self.args.actors}",
+                       f"{self.args.seed} --actors {self.args.actors}"
+                       + ("" if self.args.per_kind is None else f" --per-kind {self.args.per_kind}"),
             "minutes": self.args.minutes, "seed": self.args.seed, "actors": self.args.actors,
             "local_actors": LOCAL_ACTORS, "out": str(self.out),
             "faults": by_kind,
