@@ -3,8 +3,8 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use junction_common::fragment::Outcome;
 use junction_core::config::ScenarioConfig;
+use junction_core::episode::Outcome;
 use junction_core::spec::ACTION_DIM;
 
 use junction_sim::autopilot::{CRUISE_SPEED_MPS, autopilot_actions};

@@ -14,9 +14,10 @@ use tonic::service::Interceptor;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use junction_common::auth::{self, Token};
-use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::RolloutFragment;
 use junction_common::proto::{self, learner_client::LearnerClient};
 use junction_common::{GRPC_CONNECTION_WINDOW_BYTES, GRPC_STREAM_WINDOW_BYTES};
+use junction_core::spec::PROTOCOL_VERSION;
 
 use crate::metrics::ActorMetrics;
 use crate::reconnect::{Backoff, OutboxStream, retryable};

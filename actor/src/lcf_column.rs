@@ -1,6 +1,6 @@
 //! CoPO's LCF on the actor side: when the policy blob carries an LCF distribution, each agent
 //! draws its angle φ from it when it spawns, keeps it for its whole episode, and sees it as one
-//! more observation value after the scene's (`lcf::phi_observation`). A policy without the
+//! more observation value after the scene's (`lcf_inputs::phi_observation`). A policy without the
 //! distribution takes the scene's observation as it is, and nothing here changes it.
 
 use std::borrow::Cow;
@@ -8,8 +8,9 @@ use std::borrow::Cow;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use junction_common::lcf::{self, LcfDistribution};
+use junction_common::lcf::LcfDistribution;
 use junction_common::weights::{self, WeightsError};
+use junction_core::lcf_inputs;
 
 /// The LCF distribution a policy blob carries, if any.
 pub fn blob_distribution(blob: &[u8]) -> Result<Option<LcfDistribution>, WeightsError> {
@@ -81,7 +82,7 @@ impl LcfColumn {
         let mut rows = Vec::with_capacity(obs.len() + self.phi[scene].len());
         for (row, phi) in obs.chunks_exact(obs_dim).zip(&self.phi[scene]) {
             rows.extend_from_slice(row);
-            rows.push(phi.map_or(0.0, lcf::phi_observation));
+            rows.push(phi.map_or(0.0, lcf_inputs::phi_observation));
         }
         Cow::Owned(rows)
     }
@@ -127,7 +128,7 @@ mod tests {
         column.finish(0, &[true, false, false]);
         column.spawn(0, &[true, true, true]);
         let next = column.observations(0, &obs, 2).into_owned();
-        let phi = |v: f32| lcf::phi_from_observation(v);
+        let phi = |v: f32| lcf_inputs::phi_from_observation(v);
         assert!(phi(next[2]) < -70.0, "{}", phi(next[2]));
         assert!(phi(next[5]) < -70.0, "{}", phi(next[5]));
         assert_eq!(next[8], first[8]);

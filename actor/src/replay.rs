@@ -12,10 +12,11 @@ use anyhow::{Context, bail, ensure};
 use rand::RngCore;
 
 use junction_common::any_policy;
-use junction_common::fragment::Outcome;
-use junction_common::lcf::{self, LcfDistribution};
+use junction_common::lcf::LcfDistribution;
 use junction_common::policy::{Policy, PolicyMeta};
 use junction_core::config::ScenarioConfig;
+use junction_core::episode::Outcome;
+use junction_core::lcf_inputs;
 use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
 use crate::lcf_column::blob_distribution;
@@ -72,7 +73,7 @@ impl Driver {
         if slots.is_empty() {
             return Ok(());
         }
-        let phi = policy.lcf.map(|d| lcf::phi_observation(d.mean_deg));
+        let phi = policy.lcf.map(|d| lcf_inputs::phi_observation(d.mean_deg));
         let mut batch = Vec::with_capacity(slots.len() * policy.policy.obs_dim());
         for &slot in &slots {
             batch.extend_from_slice(&scene.observations()[slot * obs_dim..(slot + 1) * obs_dim]);
@@ -377,7 +378,8 @@ pub fn write_png(path: &Path, frame: &Frame) -> anyhow::Result<()> {
 mod tests {
     use super::*;
     use junction_common::policy::GaussianPolicy;
-    use junction_common::q_policy::{ActionGrid, QPolicy};
+    use junction_common::q_policy::QPolicy;
+    use junction_core::action_grid::ActionGrid;
     use junction_core::scenarios;
 
     /// A fresh directory under the system's temporary directory.
@@ -469,7 +471,7 @@ mod tests {
             .unwrap();
         // The slot's scene observation with φ = μ appended: (30/90 + 1)/2.
         let mut row = scene.observations()[..scene.obs_dim()].to_vec();
-        row.push(lcf::phi_observation(30.0));
+        row.push(lcf_inputs::phi_observation(30.0));
         assert_eq!(actions[..ACTION_DIM], copo.deterministic(&row).unwrap()[..]);
         // The same network without the distribution cannot be fed.
         let Err(error) = load_policy(&copo.to_bytes(4).unwrap(), &scenario) else {

@@ -7,11 +7,11 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf;
 use junction_common::lcf::LcfDistribution;
 use junction_common::policy::Policy;
 use junction_common::weights::WeightsError;
 use junction_core::config::ScenarioConfig;
+use junction_core::lcf_inputs;
 use junction_core::spec::ACTION_DIM;
 
 use crate::lcf_column::LcfColumn;
@@ -48,7 +48,7 @@ impl FragmentBuilder {
             dones: Vec::with_capacity(cells),
             alive: Vec::with_capacity(cells),
             neighbour_offsets: vec![0],
-            lcf_features: Vec::with_capacity(cells * lcf::FEATURES),
+            lcf_features: Vec::with_capacity(cells * lcf_inputs::FEATURES),
             ..RolloutFragment::default()
         };
         FragmentBuilder { fragment }
@@ -431,7 +431,8 @@ mod tests {
 
     #[test]
     fn a_q_policy_blob_makes_the_actor_act_epsilon_greedily_on_its_grid() {
-        use junction_common::q_policy::{ActionGrid, QPolicy};
+        use junction_common::q_policy::QPolicy;
+        use junction_core::action_grid::ActionGrid;
         let obs_dim = ScenarioConfig::default().obs_dim() as i64;
         let grid = ActionGrid::new(vec![-0.5, 0.0, 0.5], vec![-1.0, 1.0]).unwrap();
         let mut q = QPolicy::new(tch::Device::Cpu, obs_dim, &[16], grid.clone(), true);

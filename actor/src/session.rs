@@ -10,12 +10,14 @@ use anyhow::{Context, bail};
 use tokio::sync::watch;
 
 use junction_common::any_policy;
-use junction_common::fragment::{MAX_NAME_BYTES, MAX_STEPS, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::LcfDistribution;
 use junction_common::policy::Policy;
 use junction_common::proto;
 use junction_core::config::{RolloutConfig, RunConfig, ScenarioConfig};
-use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+use junction_core::spec::{
+    ACTION_DIM, MAX_NAME_BYTES, MAX_STEPS, OBS_LAYOUT_VERSION, PROTOCOL_VERSION,
+};
 
 use crate::lcf_column::blob_distribution;
 use crate::ledger::FragmentLog;

@@ -23,9 +23,10 @@ use anyhow::{Context, bail};
 use prost::Message;
 use tokio::sync::{oneshot, watch};
 
-use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::RolloutFragment;
 use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
+use junction_core::spec::PROTOCOL_VERSION;
 
 use crate::ledger::FragmentLog;
 use crate::metrics::{ActorMetrics, ThreadCpu};

@@ -7,9 +7,10 @@ use std::path::PathBuf;
 
 use prost::Message;
 
-use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
-use junction_common::lcf;
+use junction_common::fragment::RolloutFragment;
 use junction_common::policy::GaussianPolicy;
+use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::lcf_inputs;
 
 /// `steps` × `agents` of `obs_dim` observations: slot 0 finishes at step 0 and is refilled,
 /// every slot lists the next one as its neighbour, one finished episode.
@@ -46,7 +47,7 @@ fn fragment(steps: usize, agents: usize, obs_dim: usize) -> RolloutFragment {
         bootstrap_obs: vec![0.25; agents * obs_dim],
         neighbour_offsets,
         neighbour_ids,
-        lcf_features: vec![0.5; cells * lcf::FEATURES],
+        lcf_features: vec![0.5; cells * lcf_inputs::FEATURES],
         episodes: vec![EpisodeStats {
             outcome: Outcome::Success,
             length: 12,

@@ -12,8 +12,8 @@
 use crate::proto;
 use junction_core::lcf_inputs;
 
-pub use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
-pub use junction_core::spec::{
+use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::spec::{
     MAX_ACTION_DIM, MAX_AGENTS, MAX_NAME_BYTES, MAX_OBS_DIM, MAX_STEPS, PROTOCOL_VERSION,
 };
 

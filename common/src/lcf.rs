@@ -14,9 +14,7 @@ use crate::fragment::RolloutFragment;
 use crate::weights::WeightsError;
 use junction_core::config::{LcfConfig, NeighbourhoodReward};
 
-pub use junction_core::lcf_inputs::{
-    FEATURES, MAX_PHI_DEG, Motion, neighbourhood_features, phi_from_observation, phi_observation,
-};
+use junction_core::lcf_inputs::MAX_PHI_DEG;
 
 /// r_C = α·cos φ·r_i + β·sin φ·r_N: φ = 0 is selfish (IPPO), φ = 90° fully cooperative.
 pub fn coordinated_reward(

@@ -14,6 +14,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::mlp::{Mlp, MlpPass};
 use crate::weights::{self, Decoded, WeightsError};
+use junction_core::config::ActionStd;
 use junction_core::spec::OBS_LAYOUT_VERSION;
 
 /// Normalised observations are clipped to ± this many standard deviations.
@@ -187,7 +188,7 @@ pub fn hidden_from_meta(decoded: &Decoded) -> Result<Vec<i64>, WeightsError> {
 /// `obs_dim` metadata, within the fragment limits.
 pub fn obs_dim_from_meta(decoded: &Decoded) -> Result<i64, WeightsError> {
     let obs_dim: i64 = decoded.meta("obs_dim")?;
-    if obs_dim > 0 && obs_dim as usize <= crate::fragment::MAX_OBS_DIM {
+    if obs_dim > 0 && obs_dim as usize <= junction_core::spec::MAX_OBS_DIM {
         Ok(obs_dim)
     } else {
         Err(WeightsError::Metadata {
@@ -195,9 +196,6 @@ pub fn obs_dim_from_meta(decoded: &Decoded) -> Result<i64, WeightsError> {
         })
     }
 }
-
-/// Where a Gaussian policy's standard deviation comes from (`ppo.action_std`).
-pub use junction_core::config::ActionStd;
 
 /// Metadata key of a blob's [`ActionStd`]; blobs without it have a global one (they predate
 /// the choice).
@@ -407,7 +405,7 @@ impl GaussianPolicy {
         let obs_dim = obs_dim_from_meta(&decoded)?;
         let action_dim: i64 = decoded.meta("action_dim")?;
         let hidden = hidden_from_meta(&decoded)?;
-        if !(action_dim > 0 && action_dim as usize <= crate::fragment::MAX_ACTION_DIM) {
+        if !(action_dim > 0 && action_dim as usize <= junction_core::spec::MAX_ACTION_DIM) {
             return Err(WeightsError::Metadata {
                 key: "action_dim".into(),
             });

@@ -23,7 +23,7 @@ use crate::policy::{
 use crate::weights::{self, Decoded, WeightsError};
 use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
 
-pub use junction_core::action_grid::{ActionGrid, GridError, MAX_GRID_ACTIONS};
+use junction_core::action_grid::ActionGrid;
 
 /// A grid's values as blob metadata (`grid_steering`, `grid_throttle`): comma-separated.
 fn grid_values_to_meta(values: &[f32]) -> String {
@@ -285,6 +285,7 @@ impl Policy for QPolicy {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use junction_core::action_grid::GridError;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 

@@ -37,6 +37,7 @@ use prost::Message;
 use crate::fragment::RolloutFragment;
 use crate::proto;
 use crate::shm_layout::{self, LayoutError};
+use junction_core::config::is_valid_shm_name;
 
 pub type Ipc = ipc::Service;
 pub type ShmNode = Node<Ipc>;
@@ -127,8 +128,6 @@ pub enum Side {
     Actor,
 }
 
-pub use junction_core::config::is_valid_shm_name as is_valid_name;
-
 /// The three services of base name `base`.
 pub struct Names {
     pub fragments: ServiceName,
@@ -143,7 +142,7 @@ impl Names {
                 name: base.to_string(),
             })
         };
-        if !is_valid_name(base) {
+        if !is_valid_shm_name(base) {
             return Err(ShmError::Name {
                 name: base.to_string(),
             });

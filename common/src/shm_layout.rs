@@ -39,10 +39,10 @@
 
 use std::mem::MaybeUninit;
 
-use crate::fragment::{
-    EpisodeStats, FragmentError, MAX_NAME_BYTES, Outcome, RolloutFragment, SceneEpisodeStats, flags,
-};
-use crate::lcf;
+use crate::fragment::{FragmentError, RolloutFragment, flags};
+use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::lcf_inputs;
+use junction_core::spec::MAX_NAME_BYTES;
 
 pub const MAGIC: [u8; 4] = *b"JNCF";
 /// Version of this layout; a learner refuses (and counts) fragments of any other.
@@ -102,7 +102,7 @@ impl Counts {
             agents: f.agents,
             obs_dim: f.obs_dim,
             action_dim: f.action_dim,
-            features: lcf::FEATURES,
+            features: lcf_inputs::FEATURES,
             neighbour_ids: f.neighbour_ids.len(),
             episodes: f.episodes.len(),
             human_episodes: f.human_episodes.len(),
@@ -170,7 +170,7 @@ pub fn capacity_hint(steps: usize, agents: usize, obs_dim: usize, action_dim: us
         agents,
         obs_dim,
         action_dim,
-        features: lcf::FEATURES,
+        features: lcf_inputs::FEATURES,
         neighbour_ids: cells.saturating_mul(agents.saturating_sub(1)),
         episodes: agents,
         human_episodes: 0,
@@ -369,11 +369,11 @@ pub fn decode(
         ),
         expected_dims,
     )?;
-    if counts.features != lcf::FEATURES {
+    if counts.features != lcf_inputs::FEATURES {
         return Err(FragmentError::Shape(format!(
             "{} LCF features per cell, expected {}",
             counts.features,
-            lcf::FEATURES
+            lcf_inputs::FEATURES
         ))
         .into());
     }

@@ -9,9 +9,11 @@ use std::sync::LazyLock;
 
 use libfuzzer_sys::fuzz_target;
 
-use junction_core::config::{LcfConfig, NeighbourhoodReward, RunConfig};
-use junction_common::fragment::{EpisodeStats, Outcome, RolloutFragment, SceneEpisodeStats};
+use junction_common::fragment::RolloutFragment;
 use junction_common::{lcf, shm_layout};
+use junction_core::config::{LcfConfig, NeighbourhoodReward, RunConfig};
+use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::lcf_inputs;
 
 /// A coordination that reads every neighbour list, centred (the longer path); parsed once.
 static COORDINATION: LazyLock<LcfConfig> = LazyLock::new(|| LcfConfig {
@@ -42,7 +44,7 @@ static VALID: LazyLock<Vec<u8>> = LazyLock::new(|| {
         bootstrap_obs: vec![0.1; agents * obs_dim],
         neighbour_offsets: vec![0, 1, 2, 3, 4, 4, 4],
         neighbour_ids: vec![1, 0, 1, 0],
-        lcf_features: (0..cells * lcf::FEATURES).map(|i| i as f32 / 40.0).collect(),
+        lcf_features: (0..cells * lcf_inputs::FEATURES).map(|i| i as f32 / 40.0).collect(),
         episodes: vec![EpisodeStats {
             outcome: Outcome::Success,
             length: 2,

@@ -8,8 +8,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf;
 use junction_core::config::{AlgoKind, RunConfig};
+use junction_core::lcf_inputs;
 use junction_core::spec::ACTION_DIM;
 
 use crate::algo::phases::Phases;
@@ -82,7 +82,7 @@ pub fn synthetic_batch(
                 bootstrap_obs: (0..agents * obs_dim).map(|_| rng.r#gen::<f32>()).collect(),
                 neighbour_offsets: neighbour_offsets.clone(),
                 neighbour_ids: neighbour_ids.clone(),
-                lcf_features: vec![0.0; cells * lcf::FEATURES],
+                lcf_features: vec![0.0; cells * lcf_inputs::FEATURES],
                 ..RolloutFragment::default()
             })
         })

@@ -12,11 +12,11 @@ use std::sync::{Arc, Mutex};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, watch};
 use tonic::Status;
 
-use junction_common::fragment::{MAX_NAME_BYTES, PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::RolloutFragment;
 use junction_common::ledger::{Event, Ledger};
 use junction_common::proto;
 use junction_core::config::RunConfig;
-use junction_core::spec::{ACTION_DIM, OBS_LAYOUT_VERSION};
+use junction_core::spec::{ACTION_DIM, MAX_NAME_BYTES, OBS_LAYOUT_VERSION, PROTOCOL_VERSION};
 
 use crate::telemetry::labels::REFUSED_STREAM_LIMIT;
 use crate::telemetry::metrics::LearnerMetrics;

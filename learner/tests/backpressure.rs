@@ -10,10 +10,11 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::TcpListenerStream;
 
-use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
-use junction_common::lcf;
+use junction_common::fragment::RolloutFragment;
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
 use junction_core::config::RunConfig;
+use junction_core::lcf_inputs;
+use junction_core::spec::PROTOCOL_VERSION;
 use junction_learner::hub::Shared;
 use junction_learner::telemetry::metrics::LearnerMetrics;
 use junction_learner::transport::grpc::LearnerService;
@@ -45,7 +46,7 @@ fn fragment(sequence: u64, steps: usize) -> proto::RolloutFragment {
         alive: vec![1; cells],
         bootstrap_obs: vec![0.5; agents * obs_dim],
         neighbour_offsets: vec![0; cells + 1],
-        lcf_features: vec![0.5; cells * lcf::FEATURES],
+        lcf_features: vec![0.5; cells * lcf_inputs::FEATURES],
         sim_seconds: 0.1 * steps as f32,
         ..Default::default()
     }

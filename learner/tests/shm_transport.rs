@@ -9,11 +9,12 @@ use std::time::{Duration, Instant};
 use prost::Message;
 use tokio::sync::mpsc;
 
-use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::RolloutFragment;
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
 use junction_core::config::RunConfig;
+use junction_core::spec::PROTOCOL_VERSION;
 use junction_learner::hub::Shared;
 use junction_learner::telemetry::metrics::LearnerMetrics;
 use junction_learner::transport::bench::realistic_fragment;
@@ -463,7 +464,7 @@ fn actors_register_and_follow_the_newest_weights_over_shm() {
     assert!(refused.actor_id.is_empty());
     assert_eq!(refused.protocol_version, PROTOCOL_VERSION);
     // Names end up in logs: an absurd one is refused as over gRPC.
-    let long_name = "x".repeat(junction_common::fragment::MAX_NAME_BYTES + 1);
+    let long_name = "x".repeat(junction_core::spec::MAX_NAME_BYTES + 1);
     assert!(ask_as(PROTOCOL_VERSION, &long_name).actor_id.is_empty());
 
     // A late joiner gets the current weights from the history, then every newer version.

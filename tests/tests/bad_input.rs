@@ -3,9 +3,9 @@
 
 use std::time::Duration;
 
-use junction_common::fragment::PROTOCOL_VERSION;
-use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient};
+use junction_core::lcf_inputs;
+use junction_core::spec::PROTOCOL_VERSION;
 use junction_tests::{TempDir, metric_sum, scrape, start_learner};
 use prost::bytes::{Buf, BufMut};
 use tonic::Code;
@@ -37,7 +37,7 @@ fn valid_fragment() -> proto::RolloutFragment {
         bootstrap_obs: vec![0.5; agents * OBS_DIM],
         neighbour_offsets: vec![0; steps * agents + 1],
         neighbour_ids: vec![],
-        lcf_features: vec![0.5; steps * agents * lcf::FEATURES],
+        lcf_features: vec![0.5; steps * agents * lcf_inputs::FEATURES],
         episodes: vec![],
         human_episodes: vec![],
         scene_episodes: vec![],

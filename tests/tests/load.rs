@@ -11,9 +11,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use junction_common::fragment::PROTOCOL_VERSION;
-use junction_common::lcf;
 use junction_common::proto::{self, learner_client::LearnerClient};
+use junction_core::lcf_inputs;
+use junction_core::spec::PROTOCOL_VERSION;
 use junction_tests::{TempDir, metric_sum, rss_kib, scrape, start_learner};
 use tonic::transport::Endpoint;
 
@@ -59,7 +59,7 @@ fn fragment() -> proto::RolloutFragment {
         bootstrap_obs: vec![0.5; AGENTS * OBS_DIM],
         neighbour_offsets,
         neighbour_ids,
-        lcf_features: vec![0.25; cells * lcf::FEATURES],
+        lcf_features: vec![0.25; cells * lcf_inputs::FEATURES],
         sim_seconds: STEPS as f32 * 0.1,
         ..Default::default()
     }

@@ -6,7 +6,8 @@
 use std::process::Command;
 
 use junction_common::lcf::LcfDistribution;
-use junction_common::policy::{ActionStd, GaussianPolicy, ObsNormalizer};
+use junction_common::policy::{GaussianPolicy, ObsNormalizer};
+use junction_core::config::ActionStd;
 use junction_tests::{TempDir, workspace_root};
 use tch::Device;
 

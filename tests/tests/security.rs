@@ -4,8 +4,8 @@
 use std::path::Path;
 use std::time::Duration;
 
-use junction_common::fragment::PROTOCOL_VERSION;
 use junction_common::proto::{self, learner_client::LearnerClient};
+use junction_core::spec::PROTOCOL_VERSION;
 use junction_tests::{
     QUICK_RUN, TempDir, metric_sum, scrape, start_actor, start_learner_with_env, wait_until,
 };

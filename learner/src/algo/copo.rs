@@ -31,9 +31,10 @@ use std::collections::BTreeMap;
 use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf::{self, LcfDistribution, MAX_PHI_DEG};
+use junction_common::lcf::{self, LcfDistribution};
 use junction_common::weights::{Decoded, WeightsError};
 use junction_core::config::{CopoConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
+use junction_core::lcf_inputs::MAX_PHI_DEG;
 
 use super::AlgoError;
 use super::batch::TrainBatch;
@@ -293,6 +294,7 @@ mod tests {
         F64, Tiny, assert_checkpoint_round_trip_on, neighbourhood_fragment, small_run, t,
     };
     use junction_core::config::RunConfig;
+    use junction_core::lcf_inputs;
 
     /// φ of each slot in [`copo_fragment`], degrees.
     const PHI_BY_SLOT: [f32; 6] = [0.0, -45.0, 30.0, 90.0, 60.0, -90.0];
@@ -301,7 +303,7 @@ mod tests {
     fn copo_fragment() -> RolloutFragment {
         let mut f = neighbourhood_fragment();
         for cell in 0..f.steps * f.agents {
-            f.obs[cell * f.obs_dim + 1] = lcf::phi_observation(PHI_BY_SLOT[cell % f.agents]);
+            f.obs[cell * f.obs_dim + 1] = lcf_inputs::phi_observation(PHI_BY_SLOT[cell % f.agents]);
         }
         f
     }

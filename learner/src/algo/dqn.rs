@@ -25,8 +25,9 @@ use tch::{Device, Kind, Reduction, Tensor};
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf;
 use junction_common::policy::Policy;
-use junction_common::q_policy::{ActionGrid, QPolicy};
+use junction_common::q_policy::QPolicy;
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::action_grid::ActionGrid;
 use junction_core::config::{DqnConfig, GlobalReturn, LcfConfig, NeighbourhoodReward};
 
 use super::batch::{alive_neighbour_counts, alive_observations};

@@ -42,10 +42,11 @@ use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf::{self, FEATURES};
+use junction_common::lcf::{self};
 use junction_common::mlp::Mlp;
 use junction_common::weights::{self, Decoded, WeightsError};
 use junction_core::config::{DynamicLcfConfig, GlobalReturn, LcfConfig, PpoConfig};
+use junction_core::lcf_inputs::FEATURES;
 
 use super::AlgoError;
 use super::batch::TrainBatch;

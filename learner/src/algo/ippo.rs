@@ -279,8 +279,8 @@ mod shared_ppo_tests {
         let _rng = crate::test_rng::lock();
         let mut fragment = neighbourhood_fragment();
         fragment.costs = (0..fragment.costs.len()).map(|i| (i % 2) as f32).collect();
-        fragment.episodes = vec![junction_common::fragment::EpisodeStats {
-            outcome: junction_common::fragment::Outcome::Crash,
+        fragment.episodes = vec![junction_core::episode::EpisodeStats {
+            outcome: junction_core::episode::Outcome::Crash,
             length: 1,
             total_reward: -5.0,
             mean_abs_accel: 0.0,

@@ -36,8 +36,8 @@ use tch::Tensor;
 use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::policy::Policy;
-use junction_common::q_policy::GridError;
 use junction_common::weights::{Decoded, WeightsError};
+use junction_core::action_grid::GridError;
 
 use phases::Phases;
 

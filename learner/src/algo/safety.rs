@@ -83,8 +83,8 @@ impl Lagrangian {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use junction_common::fragment::{EpisodeStats, Outcome};
     use junction_core::config::{RunConfig, SafetyMode};
+    use junction_core::episode::{EpisodeStats, Outcome};
     use tch::Device;
 
     fn episode(total_cost: f32) -> EpisodeStats {

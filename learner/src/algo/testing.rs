@@ -8,10 +8,10 @@
 use tch::{Device, Kind, Tensor};
 
 use junction_common::fragment::RolloutFragment;
-use junction_common::lcf;
 use junction_common::policy::gaussian_log_prob;
 use junction_common::weights::{self, Decoded};
 use junction_core::config::RunConfig;
+use junction_core::lcf_inputs;
 
 use super::Algorithm;
 use super::batch::{CriticInput, NormalizedFragment};
@@ -68,7 +68,7 @@ pub fn neighbourhood_fragment() -> RolloutFragment {
         let slot = (cell % agents) as f32;
         lcf_features.extend([list.len() as f32 / 20.0, 0.5, 0.3, 0.1 * (slot + 1.0), 0.5]);
     }
-    debug_assert_eq!(lcf_features.len(), cells * lcf::FEATURES);
+    debug_assert_eq!(lcf_features.len(), cells * lcf_inputs::FEATURES);
     RolloutFragment {
         steps,
         agents,
@@ -144,7 +144,7 @@ pub fn one_step_fragment(
         alive: vec![true; agents],
         bootstrap_obs: vec![0.0; agents * obs_dim],
         neighbour_offsets: vec![0; agents + 1],
-        lcf_features: vec![0.0; agents * lcf::FEATURES],
+        lcf_features: vec![0.0; agents * lcf_inputs::FEATURES],
         ..RolloutFragment::default()
     }
 }

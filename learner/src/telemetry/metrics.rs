@@ -15,9 +15,10 @@ use prometheus::{
     CounterVec, Gauge, GaugeVec, Histogram, IntCounter, IntCounterVec, IntGauge, Registry,
 };
 
-use junction_common::fragment::{FragmentError, Outcome, RolloutFragment};
+use junction_common::fragment::{FragmentError, RolloutFragment};
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::telemetry::{Registrar, names};
+use junction_core::episode::Outcome;
 
 use super::labels::{
     DROP_REASONS, REFUSED_STREAM_LIMIT, REFUSED_UNAUTHENTICATED, REJECT_DECODE, REJECT_SCENARIO,

@@ -2,7 +2,7 @@
 
 use std::collections::VecDeque;
 
-use junction_common::fragment::{EpisodeStats, Outcome, SceneEpisodeStats};
+use junction_core::episode::{EpisodeStats, Outcome, SceneEpisodeStats};
 
 /// The newest `capacity` agent episodes, and the fragments that delivered them (for the
 /// collision rate, which needs the simulated time those episodes came from).

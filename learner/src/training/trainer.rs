@@ -12,13 +12,13 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use anyhow::Context;
 use tokio::sync::mpsc;
 
-use junction_common::fragment::{PROTOCOL_VERSION, RolloutFragment};
+use junction_common::fragment::RolloutFragment;
 use junction_common::lcf::NEIGHBOUR_BUCKETS;
 use junction_common::ledger::Event;
 use junction_common::proto;
 use junction_common::weights;
 use junction_core::config::{AlgoKind, LrSchedule};
-use junction_core::spec::OBS_LAYOUT_VERSION;
+use junction_core::spec::{OBS_LAYOUT_VERSION, PROTOCOL_VERSION};
 
 use super::checkpoint::{CheckpointMeta, Checkpointer};
 use crate::algo::{Algorithm, Stage, UpdateStats};
@@ -592,8 +592,8 @@ mod tests {
     use super::*;
     use crate::algo;
     use crate::telemetry::metrics::LearnerMetrics;
-    use junction_common::lcf;
     use junction_core::config::RunConfig;
+    use junction_core::lcf_inputs;
 
     /// 2 steps of `agents` live agents of the default scenario, from policy `version`.
     fn fragment(agents: usize, version: u64) -> RolloutFragment {
@@ -616,7 +616,7 @@ mod tests {
             alive: vec![true; cells],
             bootstrap_obs: vec![0.5; agents * obs_dim],
             neighbour_offsets: vec![0; cells + 1],
-            lcf_features: vec![0.5; cells * lcf::FEATURES],
+            lcf_features: vec![0.5; cells * lcf_inputs::FEATURES],
             sim_seconds: 0.2,
             ..RolloutFragment::default()
         }

@@ -14,10 +14,7 @@ use rand_chacha::ChaCha8Rng;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::TcpListenerStream;
 
-use junction_common::fragment::{
-    EpisodeStats, FragmentError, Outcome, PROTOCOL_VERSION, RolloutFragment,
-};
-use junction_common::lcf;
+use junction_common::fragment::{FragmentError, RolloutFragment};
 use junction_common::proto::{self, learner_client::LearnerClient, learner_server::LearnerServer};
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
@@ -25,7 +22,9 @@ use junction_common::{
     GRPC_CONNECTION_WINDOW_BYTES, GRPC_MAX_FRAME_BYTES, GRPC_STREAM_WINDOW_BYTES,
 };
 use junction_core::config::RunConfig;
-use junction_core::spec::ACTION_DIM;
+use junction_core::episode::{EpisodeStats, Outcome};
+use junction_core::lcf_inputs;
+use junction_core::spec::{ACTION_DIM, PROTOCOL_VERSION};
 
 use super::grpc::LearnerService;
 use super::ingest::Ingest;
@@ -110,7 +109,7 @@ pub fn realistic_fragment(config: &RunConfig, seed: u64) -> RolloutFragment {
         bootstrap_obs: uniform(agents * obs_dim, 0.0, 1.0),
         neighbour_offsets,
         neighbour_ids,
-        lcf_features: uniform(cells * lcf::FEATURES, 0.0, 1.0),
+        lcf_features: uniform(cells * lcf_inputs::FEATURES, 0.0, 1.0),
         episodes: (0..agents)
             .map(|_| EpisodeStats {
                 outcome: Outcome::Success,

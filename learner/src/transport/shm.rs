@@ -21,10 +21,10 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::PortFactory;
 use prost::Message;
 
-use junction_common::fragment::PROTOCOL_VERSION;
 use junction_common::proto;
 use junction_common::shm::{self, Names, Side};
 use junction_common::shm_layout;
+use junction_core::spec::PROTOCOL_VERSION;
 
 use super::ingest::{Ingest, Rejection};
 use crate::hub::Shared;
