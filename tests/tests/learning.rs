@@ -2,7 +2,7 @@
 //! success rate from about 0 (random policy) to at least 0.9, with fixed seeds, within a bounded
 //! number of updates and time.
 
-use std::sync::Mutex;
+use std::sync::{Condvar, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use junction_tests::{TempDir, start_actor, start_learner};
@@ -20,8 +20,35 @@ fn progress_lines(path: &std::path::Path) -> Vec<serde_json::Value> {
         .collect()
 }
 
-/// One learning run at a time: each assumes the machine's cores to itself (its limits do).
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+/// Two learning runs at a time. A run keeps about one core busy, its actor waiting for the
+/// learner's weights and its learner for the actor's fragments, so two fill a 2-core machine;
+/// more would slow each towards its limits.
+const RUNS_AT_ONCE: usize = 2;
+static RUNNING: (Mutex<usize>, Condvar) = (Mutex::new(0), Condvar::new());
+
+/// A place among the `RUNS_AT_ONCE` running runs, given up when dropped, so a run that fails
+/// (a panic unwinds through the drop) frees its place for the next.
+struct Turn;
+
+impl Turn {
+    fn take() -> Turn {
+        let (running, freed) = &RUNNING;
+        let mut running = running.lock().unwrap_or_else(PoisonError::into_inner);
+        while *running >= RUNS_AT_ONCE {
+            running = freed.wait(running).unwrap_or_else(PoisonError::into_inner);
+        }
+        *running += 1;
+        Turn
+    }
+}
+
+impl Drop for Turn {
+    fn drop(&mut self) {
+        let (running, freed) = &RUNNING;
+        *running.lock().unwrap_or_else(PoisonError::into_inner) -= 1;
+        freed.notify_one();
+    }
+}
 
 #[test]
 fn ppo_learns_to_cross_the_tiny_intersection() {
@@ -98,8 +125,7 @@ fn learns_to_cross_the_tiny_intersection(algo: &str) {
 /// Trains `algo` with `extra` learner flags until the success bar (returned: the progress
 /// line that reached it) or the limits (a panic).
 fn learn(algo: &str, extra: &[&str], max_updates: u64) -> serde_json::Value {
-    // A test that failed while holding the lock poisons it; the others still run.
-    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _turn = Turn::take();
     let dir = TempDir::new(&format!("learning-{algo}-{}", extra.len()));
     let run_dir = dir.path().join("run");
     let window = WINDOW.to_string();
