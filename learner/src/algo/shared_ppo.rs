@@ -165,36 +165,7 @@ impl<C: CriticInput> SharedPpo<C> {
         phases: &mut Phases,
     ) -> Result<Prepared, AlgoError> {
         let c = &self.config;
-        let mut heads = Vec::new();
-        for (index, (signal, critic)) in self
-            .coordination
-            .signals()
-            .iter()
-            .zip(&self.critics)
-            .enumerate()
-        {
-            heads.push(Head {
-                rewards: fragments
-                    .iter()
-                    .map(|f| self.coordination.rewards(index, f))
-                    .collect::<Result<_, _>>()?,
-                value: Box::new(move |x| value(critic, x)),
-                gamma: signal.gamma.unwrap_or(c.gamma),
-                outlives_agent: signal.outlives_agent,
-            });
-        }
-        // The cost side of PPO-Lagrangian: the same rows, the costs, the cost critic.
-        if let Some(safety) = &self.safety {
-            heads.push(Head {
-                rewards: fragments
-                    .iter()
-                    .map(|f| Cow::Borrowed(f.costs.as_slice()))
-                    .collect(),
-                value: Box::new(|x| safety.cost_value(x)),
-                gamma: c.gamma,
-                outlives_agent: false,
-            });
-        }
+        let heads = self.value_heads(fragments)?;
         let batch = assemble(
             fragments,
             &self.critic_input,
@@ -215,14 +186,7 @@ impl<C: CriticInput> SharedPpo<C> {
             PpoObjective::Clipped => Objective::Clipped,
             PpoObjective::Decoupled => Objective::Decoupled,
         };
-        // The policy this update starts from: decoupled PPO's proximal policy, the KL anchor.
-        let start = (objective == Objective::Decoupled || self.kl_coef > 0.0).then(|| {
-            tch::no_grad(|| {
-                let (mean, log_std) = self.policy.distribution(&obs);
-                // Copies, not views of the parameters the optimiser is about to change.
-                (mean, log_std.copy())
-            })
-        });
+        let start = self.start_policy(&obs, objective);
         let proximal_log_probs = match (&start, objective) {
             (Some((mean, log_std)), Objective::Decoupled) => Some(tch::no_grad(|| {
                 gaussian_log_prob(mean, log_std, &batch.actions)
@@ -254,6 +218,57 @@ impl<C: CriticInput> SharedPpo<C> {
             batch,
             rows,
             objective,
+        })
+    }
+
+    /// One value head per signal the coordination learns from (its rewards, its critic, its
+    /// discount), and PPO-Lagrangian's cost head after them: the same rows, the costs, the
+    /// cost critic.
+    fn value_heads<'a>(
+        &'a self,
+        fragments: &'a [RolloutFragment],
+    ) -> Result<Vec<Head<'a>>, AlgoError> {
+        let mut heads = Vec::new();
+        for (index, (signal, critic)) in self
+            .coordination
+            .signals()
+            .iter()
+            .zip(&self.critics)
+            .enumerate()
+        {
+            heads.push(Head {
+                rewards: fragments
+                    .iter()
+                    .map(|f| self.coordination.rewards(index, f))
+                    .collect::<Result<_, _>>()?,
+                value: Box::new(move |x| value(critic, x)),
+                gamma: signal.gamma.unwrap_or(self.config.gamma),
+                outlives_agent: signal.outlives_agent,
+            });
+        }
+        if let Some(safety) = &self.safety {
+            heads.push(Head {
+                rewards: fragments
+                    .iter()
+                    .map(|f| Cow::Borrowed(f.costs.as_slice()))
+                    .collect(),
+                value: Box::new(|x| safety.cost_value(x)),
+                gamma: self.config.gamma,
+                outlives_agent: false,
+            });
+        }
+        Ok(heads)
+    }
+
+    /// The policy this update starts from (its mean and log-std over `obs`), where the
+    /// objective needs it: decoupled PPO's proximal policy, the KL penalty's anchor.
+    fn start_policy(&self, obs: &Tensor, objective: Objective) -> Option<(Tensor, Tensor)> {
+        (objective == Objective::Decoupled || self.kl_coef > 0.0).then(|| {
+            tch::no_grad(|| {
+                let (mean, log_std) = self.policy.distribution(obs);
+                // Copies, not views of the parameters the optimiser is about to change.
+                (mean, log_std.copy())
+            })
         })
     }
 
