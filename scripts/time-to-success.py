@@ -3,8 +3,9 @@
 
 For each seed: `learner serve --local-actors ACTORS` (what `make run` starts) under
 `--seconds` of wall clock (or `--agent-steps`), then `actor eval` of its final checkpoint on an
-unseen evaluation seed (`--eval-episodes` agent episodes, the mean action). Prints one JSON line
-per seed, then one summary line (means with 95 % t-intervals over the seeds):
+unseen evaluation seed (`--eval-episodes` agent episodes), with the policy's mean action and
+again with sampled actions. Prints one JSON line per seed, then one summary line (means with
+95 % t-intervals over the seeds):
 
   seconds_to_threshold_20 / _100   wall-clock seconds to the first progress line whose MetaDrive
                                    success (per scene episode, CoPO's definition) reached
@@ -14,10 +15,14 @@ per seed, then one summary line (means with 95 % t-intervals over the seeds):
   agent_steps_to_threshold_20 / _100   agent-steps consumed then
   reach_20 / reach_100             the same for every --also threshold, {threshold: [seconds,
                                    agent-steps] or null}
-  eval_success / eval_crash / eval_out_of_road   the evaluation's rates over agent episodes,
-                                   each {value, low, high} (Wilson 95 %), and the same per scene
+  eval_success / eval_crash / eval_out_of_road / eval_timeout   the evaluation's rates over
+                                   agent episodes with the mean action (issue 40's bar), each
+                                   {value, low, high} (Wilson 95 %), and the same per scene
                                    episode (eval_scene_success: Student's t over scene episodes,
                                    which holds the agents of one scene together)
+  eval_sampled_success / _crash / _timeout   the same checkpoint with actions drawn from its
+                                   distribution, as CoPO's evaluation does (its PolicyFunction
+                                   samples): how much of the gap is the mean action's
   agent_steps, seconds, updates_per_s, agent_steps_per_s, learner_utilisation (update time /
   wall time), final_success_20: the run's totals and its last live window
 
@@ -70,16 +75,18 @@ def train(args, seed, run_dir, extra):
     return time.monotonic() - started
 
 
-def evaluate(args, run_dir):
+def evaluate(args, run_dir, actions):
+    """`actor eval` of the run's newest checkpoint with `actions` ("mean" or "sample")."""
     out = run_dir / "eval"
     command = [str(args.bin / "actor"), "eval", "--checkpoint", str(run_dir),
                "--seed", str(args.eval_seed), "--episodes", str(args.eval_episodes),
-               "--out", str(out), "--progress-interval", "60"]
-    with open(run_dir / "eval.log", "w") as log:
+               "--actions", actions, "--out", str(out), "--progress-interval", "60"]
+    with open(run_dir / f"eval-{actions}.log", "w") as log:
         code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
     if code != 0:
-        sys.exit(f"time-to-success: actor eval exited {code}; see {run_dir}/eval.log")
-    results = sorted(out.glob(f"eval-*-seed{args.eval_seed}.json"))
+        sys.exit(f"time-to-success: actor eval exited {code}; see {run_dir}/eval-{actions}.log")
+    suffix = "-sample" if actions == "sample" else ""
+    results = sorted(out.glob(f"eval-*-seed{args.eval_seed}{suffix}.json"))
     if not results:
         sys.exit(f"time-to-success: actor eval wrote no result in {out}")
     return json.loads(results[0].read_text())
@@ -107,7 +114,8 @@ def measure(args, seed, extra):
     if not lines:
         sys.exit(f"time-to-success: seed {seed}: {run_dir}/progress.jsonl is empty")
     print(f"time-to-success: seed {seed}: evaluating on seed {args.eval_seed}", file=sys.stderr)
-    evaluation = evaluate(args, run_dir)
+    evaluation = evaluate(args, run_dir, "mean")
+    sampled = evaluate(args, run_dir, "sample")["metrics"]
     last = lines[-1]
     live = [(line["elapsed_s"], line["agent_steps"], line["scene_window"]["success_rate"])
             for line in lines if line["scene_window"].get("scene_episodes", 0) > 0]
@@ -138,8 +146,12 @@ def measure(args, seed, extra):
         "eval_success": interval(metrics["success_rate"]),
         "eval_crash": interval(metrics["crash_rate"]),
         "eval_out_of_road": interval(metrics["out_of_road_rate"]),
+        "eval_timeout": interval(metrics["timeout_rate"]),
         "eval_scene_success": interval(metrics["scene_success_rate"]),
         "eval_scene_crash": interval(metrics["scene_crash_rate"]),
+        "eval_sampled_success": interval(sampled["success_rate"]),
+        "eval_sampled_crash": interval(sampled["crash_rate"]),
+        "eval_sampled_timeout": interval(sampled["timeout_rate"]),
         "agent_steps": last["agent_steps"],
         "updates": last["updates"],
         "seconds": round(elapsed, 1),
@@ -171,6 +183,10 @@ def summary(results):
         "eval_success": stat([r["eval_success"]["value"] for r in results]),
         "eval_crash": stat([r["eval_crash"]["value"] for r in results]),
         "eval_out_of_road": stat([r["eval_out_of_road"]["value"] for r in results]),
+        # Results written before the timeout and the sampled evaluation were measured lack them.
+        "eval_timeout": stat([r.get("eval_timeout", {}).get("value") for r in results]),
+        "eval_sampled_success": stat([r.get("eval_sampled_success", {}).get("value") for r in results]),
+        "eval_sampled_crash": stat([r.get("eval_sampled_crash", {}).get("value") for r in results]),
         "agent_steps_per_s": stat([r["agent_steps_per_s"] for r in results]),
         "learner_utilisation": stat([r["learner_utilisation"] for r in results]),
         # Issue 40's bar: every seed evaluates at or above the threshold with crashes ≤ 0.2.

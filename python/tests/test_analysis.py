@@ -327,14 +327,18 @@ def test_every_table_of_results_md_is_what_its_command_prints():
 
 # ---------------------------------------------------------------- time to success
 
-def tts_line(seed, reach_07, reach_08, steps, success, crash):
-    return {"bench": "time_to_success", "seed": seed, "threshold": 0.8,
+def tts_line(seed, reach_07, reach_08, steps, success, crash, sampled=None):
+    line = {"bench": "time_to_success", "seed": seed, "threshold": 0.8,
             "seconds_to_threshold_20": reach_08, "seconds_to_threshold_100": None,
             "reach_20": {"0.7": [reach_07, 1] if reach_07 else None},
             "reach_100": {"0.7": None}, "agent_steps": steps,
             "agent_steps_per_s": steps / 300, "final_success_20": success,
             "eval_success": {"value": success}, "eval_crash": {"value": crash},
             "eval_out_of_road": {"value": 0.0}}
+    if sampled is not None:
+        line |= {"eval_timeout": {"value": 1 - success - crash},
+                 "eval_sampled_success": {"value": sampled}, "eval_sampled_crash": {"value": crash}}
+    return line
 
 
 def test_the_time_to_success_table_rows_a_file_per_setting_over_its_seeds(tmp_path):
@@ -345,13 +349,19 @@ def test_the_time_to_success_table_rows_a_file_per_setting_over_its_seeds(tmp_pa
              {"bench": "time_to_success_summary"}]
     f.write_text("\n".join(json.dumps(l) for l in lines) + "\n")
     header, rule, row = time_to_success.table([str(f)]).splitlines()
-    assert "≥ 0.7 at" in header and "≥ 0.8" in header and rule.count("---") == 10
+    assert "≥ 0.7 at" in header and "≥ 0.8" in header and rule.count("---") == 13
     cells = [c.strip() for c in row.strip("|").split("|")]
     # Seeds in order; 25,000 ± t(1)·5,000/√2·√2 agent-steps/s; seed 2 never reached 0.8.
     assert cells[:4] == ["fast-300s", "1, 2", "25,000 ± 63,531", "6.0–9.0 M"]
     assert cells[4] == "80 / 90 (never / never)"
     assert cells[5] == "1/2 seeds: 250 / never s"
     assert cells[7] == "0.750 ± 0.635" and cells[8] == "0.150 ± 0.635"
+    # Files written before the timeout and the sampled evaluation were measured: dashes.
+    assert cells[10:] == ["–", "–", "–"]
+    f.write_text("\n".join(json.dumps(l) for l in [tts_line(1, 80.0, None, 6e6, 0.7, 0.1, 0.84),
+                                                   tts_line(2, 90.0, None, 9e6, 0.7, 0.1, 0.86)]))
+    cells = [c.strip() for c in time_to_success.table([str(f)]).splitlines()[2].strip("|").split("|")]
+    assert cells[10:] == ["0.200 ± 0.000", "0.850 ± 0.127", "0.100 ± 0.000"]
     with pytest.raises(ValueError, match="no time_to_success line"):
         (tmp_path / "empty.jsonl").write_text(json.dumps(lines[2]) + "\n")
         time_to_success.table([str(tmp_path / "empty.jsonl")])

@@ -1,6 +1,7 @@
 """The time-to-success table: `scripts/time-to-success.py`'s JSON lines (one file per setting,
 one line per training seed and a summary line) as one Markdown row per setting, the mean and
-95 % t half-width over its seeds."""
+95 % t half-width over its seeds. The evaluation columns are the mean action's (issue 40's bar)
+and, beside them, sampled actions' (CoPO's evaluation samples)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from .stats import fmt, mean_ci
 
 HEADER = ("| setting | seeds | agent-steps/s | agent-steps | training window ≥ {t:g} at "
           "(s; 100 episodes) | ≥ {threshold:g} | final window | evaluated success | crash "
-          "| out of road |")
+          "| out of road | timeout | sampled success | sampled crash |")
 
 
 def seed_lines(path: Path) -> list[dict]:
@@ -36,6 +37,12 @@ def _seconds(values: list[float | None]) -> str:
     return " / ".join("never" if v is None else f"{v:.0f}" for v in values)
 
 
+def _rate(seeds: list[dict], key: str) -> str:
+    """Mean ± t over the seeds of an evaluation rate (a dash in files written before it was
+    measured)."""
+    return fmt([l.get(key, {}).get("value") for l in seeds], 3)
+
+
 def row(label: str, seeds: list[dict], also: float) -> str:
     threshold = seeds[0]["threshold"]
     steps = [l["agent_steps"] for l in seeds]
@@ -51,9 +58,12 @@ def row(label: str, seeds: list[dict], also: float) -> str:
         f"{sum(r is not None for r in reached)}/{len(seeds)} seeds"
         + ("" if not any(r is not None for r in reached) else f": {_seconds(reached)} s"),
         fmt([l["final_success_20"] for l in seeds]),
-        fmt([l["eval_success"]["value"] for l in seeds], 3),
-        fmt([l["eval_crash"]["value"] for l in seeds], 3),
-        fmt([l["eval_out_of_road"]["value"] for l in seeds], 3),
+        _rate(seeds, "eval_success"),
+        _rate(seeds, "eval_crash"),
+        _rate(seeds, "eval_out_of_road"),
+        _rate(seeds, "eval_timeout"),
+        _rate(seeds, "eval_sampled_success"),
+        _rate(seeds, "eval_sampled_crash"),
     ]
     return "| " + " | ".join(cells) + " |"
 
