@@ -175,20 +175,26 @@ def write_run(root, name, seed, successes, method="ippo", scene="intersection", 
                                 episodes=30 * (j - k)) for j in range(k + 1, len(successes) + 1)]
     (run / "progress.jsonl").write_text("".join(json.dumps(l) + "\n" for l in lines))
     for seed_e, actions, success, crash in evals:
-        suffix = "-sample" if actions == "sample" else ""
-        metrics = {"scene_success_rate": {"value": success, "low": success - 0.1,
-                                          "high": success + 0.1, "ci": "student_t", "n": 12},
-                   "scene_crash_rate": {"value": crash, "low": 0, "high": 1, "ci": "student_t",
-                                        "n": 12},
-                   "scene_out_of_road_rate": {"value": 0.01, "low": 0, "high": 1,
-                                              "ci": "student_t", "n": 12},
-                   "success_rate": {"value": success, "low": success - 0.03,
-                                    "high": success + 0.03, "ci": "wilson", "n": 1000}}
-        (run / "eval" / f"eval-{scene}-seed{seed_e}{suffix}.json").write_text(json.dumps({
-            "format": "junction-eval/1", "scenario": scene, "seed": seed_e, "actions": actions,
-            "episodes": 1000, "scene_episodes": 12, "outcomes": {}, "metrics": metrics,
-            "endings": {"success/exit": 700, "crash/junction/crossing": 300}}))
+        write_eval(run / "eval", scene, seed_e, actions, success, crash)
     return run
+
+
+def write_eval(directory, scenario, seed, actions, success, crash):
+    """An evaluation JSON: MetaDrive's rates with t intervals over 12 scene episodes (success
+    ± 0.1), the agent-episode success with a Wilson interval (± 0.03)."""
+    suffix = "-sample" if actions == "sample" else ""
+    metrics = {"scene_success_rate": {"value": success, "low": success - 0.1,
+                                      "high": success + 0.1, "ci": "student_t", "n": 12},
+               "scene_crash_rate": {"value": crash, "low": 0, "high": 1, "ci": "student_t",
+                                    "n": 12},
+               "scene_out_of_road_rate": {"value": 0.01, "low": 0, "high": 1,
+                                          "ci": "student_t", "n": 12},
+               "success_rate": {"value": success, "low": success - 0.03,
+                                "high": success + 0.03, "ci": "wilson", "n": 1000}}
+    (directory / f"eval-{scenario}-seed{seed}{suffix}.json").write_text(json.dumps({
+        "format": "junction-eval/1", "scenario": scenario, "seed": seed, "actions": actions,
+        "episodes": 1000, "scene_episodes": 12, "outcomes": {}, "metrics": metrics,
+        "endings": {"success/exit": 700, "crash/junction/crossing": 300}}))
 
 
 def test_a_resumed_run_is_one_history_with_its_clock_continued(tmp_path):
@@ -237,6 +243,10 @@ def test_copo_reference_values():
     # ≈ 25 agent-steps per environment step of the 30-agent intersection; unknown elsewhere.
     assert reference.curve_by_agent_steps("intersection")[5_000_000] == 0.50
     assert reference.curve_by_agent_steps("roundabout") == {}
+    # MetaDrive's own intersection and Junction's twin of it are read against CoPO's curve.
+    for scene in ("intersection-on-metadrive", "intersection-metadrive"):
+        assert reference.curve_by_agent_steps(scene)[5_000_000] == 0.50
+    assert reference.curve("roundabout-large") == {}
     assert reference.table("intersection") == {"ippo": 0.719, "ccppo-concat": 0.757,
                                                "ccppo-mf": 0.708, "cl": 0.757, "copo": 0.795}
     assert reference.table("roundabout")["copo"] == 0.728
@@ -306,6 +316,33 @@ def test_the_command_line_tables_report_and_figures(tmp_path):
     summary = json.loads((tmp_path / "exp" / "summary.json").read_text())
     assert summary["format"] == "junction-summary/1" and not math.isnan(
         summary["runs"][0]["final"]["wall_s"])
+
+
+def test_the_cross_simulator_table_takes_its_interval_over_training_seeds(tmp_path):
+    twin, metadrive = "intersection-metadrive", "intersection-on-metadrive"
+    # Three twin-trained seeds, each evaluated at home and in MetaDrive on seed 1000, plus a
+    # validation evaluation (seed 777) and a sampled one the table must leave out.
+    for seed, home, away in [(1, 0.5, 0.3), (2, 0.6, 0.4), (3, 0.7, 0.5)]:
+        run = write_run(tmp_path, f"twin-s{seed}", seed, [0.2, 0.4], scene=twin,
+                        evals=[(777, "mean", 0.9, 0.05), (1000, "mean", home, 0.2),
+                               (1000, "sample", 0.95, 0.0)])
+        write_eval(run / "eval", metadrive, 1000, "mean", away, 0.3 + 0.1 * seed)
+    records = analysis.load([str(tmp_path)])
+    assert tables.has_cross_sim(records)
+    rows = {tuple(c.strip() for c in line.strip("|").split("|"))[:2]:
+            [c.strip() for c in line.strip("|").split("|")]
+            for line in tables.cross_sim_table(records, 1000).splitlines()[2:]}
+    assert set(rows) == {(twin, twin), (twin, metadrive)}
+    half = 4.3027 * 0.1 / math.sqrt(3)  # t(0.975, 2 df) × sd 0.1 / sqrt(3 seeds)
+    home = rows[(twin, twin)]
+    assert home[2:5] == ["3", "36", f"0.60 ± {half:.2f}"]
+    assert home[7] == "1: 0.50 [0.40, 0.60]; 2: 0.60 [0.50, 0.70]; 3: 0.70 [0.60, 0.80]"
+    away = rows[(twin, metadrive)]
+    assert away[4:6] == [f"0.40 ± {half:.2f}", f"0.50 ± {half:.2f}"]
+    # A run evaluated only at home has no cross-simulator cell to show.
+    alone = tmp_path / "alone"
+    write_run(alone, "twin-s1", 1, [0.2], scene=twin, evals=[(1000, "mean", 0.5, 0.2)])
+    assert not tables.has_cross_sim(analysis.load([str(alone)]))
 
 
 # ---------------------------------------------------------------- RESULTS.md

@@ -7,7 +7,8 @@
                               run directory that cannot be read is named and left out
   tables SOURCE...            the tables over seeds (every run, the summary per group, each
                               group minus a baseline of the same seed, marks, time to success,
-                              LCF angle, endings, evaluations); --only picks some
+                              LCF angle, endings, evaluations, the cross-simulator
+                              2 × 2 over training seeds); --only picks some
   grid SOURCE... [EVAL_SEED]  RESULTS.md's grid tables (what scripts/grid-tables.py prints)
   figures SOURCE... --out DIR the SVG figures alone
   time-to-success FILE...     scripts/time-to-success.py's JSON lines, one row per file
@@ -33,7 +34,7 @@ from .report import DEFAULT_MARKS, DEFAULT_THRESHOLDS, write_report
 from .summary import load, write_summary
 
 ONLY = ["runs", "summary", "paired", "marks", "run-marks", "env-marks", "reach", "lcf",
-        "endings", "evals", "table1"]
+        "endings", "evals", "cross-sim", "table1"]
 
 
 def _ints(text: str | None) -> list[int]:
@@ -230,6 +231,9 @@ def tables_text(records, by, order, args) -> str:
         for scene in dict.fromkeys(r.scene for r in training):
             out.append(f"### Table 1 — {scene}\n\n" + tables.table1(
                 training, scene, by, order, [args.eval_seed] if args.eval_seed else None))
+    if "cross-sim" in only and tables.has_cross_sim(records):
+        out.append("### Across simulators, over training seeds\n\n" + tables.cross_sim_table(
+            records, args.eval_seed))
     if "evals" in only and any(r.evals for r in records):
         out.append("### Every evaluation\n\n" + tables.evals_table(
             [r for r in records if r.evals]))

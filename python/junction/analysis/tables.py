@@ -1,8 +1,9 @@
 """Markdown tables over seeds from `RunRecord`s: Table 1 per scene, every run's figures, each
 arm minus a baseline of the same seed, the training curve at agent-step and environment-step
 marks (the 20-scene-episode window and CoPO's 100-episode smoothing) beside CoPO's reference,
-*Held*, time to success, the learned LCF angle, how evaluation episodes ended, and every
-evaluation with its own intervals. Standard library only."""
+*Held*, time to success, the learned LCF angle, how evaluation episodes ended, every
+evaluation with its own intervals, and the cross-simulator 2 × 2 over training seeds. Standard
+library only."""
 
 from __future__ import annotations
 
@@ -385,6 +386,55 @@ def evals_table(records) -> str:
                            "agent episodes", "scene episodes", "success [Wilson 95 %]",
                            "crash", "out of road", "MetaDrive's success ± t over scene episodes"],
                           rows)
+
+
+CROSS_SIM_RATES = ("success", "crash", "out_of_road")
+
+
+def cross_sim_cells(records, eval_seed=None, actions="mean") -> "OrderedDict":
+    """(scene trained on, scenario evaluated on) -> [(run, its evaluation there)] in seed
+    order: every training run's evaluation (on `eval_seed`, any seed if None) in each scenario
+    it was evaluated on, its own included."""
+    cells: OrderedDict = OrderedDict()
+    for r in sorted((r for r in records if r.is_training), key=lambda r: (r.scene, r.seed or 0)):
+        for scenario in dict.fromkeys(e["scenario"] for e in r.evals):
+            e = r.evaluation(eval_seed, actions, scenario)
+            if e is not None:
+                cells.setdefault((r.scene, scenario), []).append((r, e))
+    return cells
+
+
+def has_cross_sim(records) -> bool:
+    """Whether some training run was evaluated on a scenario other than its own."""
+    return any(trained != evaluated for trained, evaluated in cross_sim_cells(records))
+
+
+def cross_sim_table(records, eval_seed=None, actions="mean") -> str:
+    """The cross-simulator 2 × 2 (trained on one scene × evaluated on each): MetaDrive's
+    success, crash and out-of-road rates per scene episode, as mean ± 95 % t over the training
+    seeds (one policy per seed: the level training varies at), then each seed's success with
+    its t interval over that evaluation's scene episodes. Neither interval counts agent
+    episodes, which share their scene episode (crashes come in pairs)."""
+    rows = []
+    for (trained, evaluated), members in cross_sim_cells(records, eval_seed, actions).items():
+        def rates(key):
+            return [(e["metrics"].get(f"scene_{key}_rate") or [None])[0] for _, e in members]
+
+        def each(r, e):
+            m = e["metrics"].get("scene_success_rate")
+            if m is None:
+                return f"{r.seed}: –"
+            low, high = m[1], m[2]
+            interval = "" if low is None or high is None else f" [{low:.2f}, {high:.2f}]"
+            return f"{r.seed}: {m[0]:.2f}{interval}"
+
+        rows.append([trained, evaluated, len(members),
+                     sum(e.get("scene_episodes") or 0 for _, e in members),
+                     *(fmt(rates(k), 2) for k in CROSS_SIM_RATES),
+                     "; ".join(each(r, e) for r, e in members)])
+    return markdown_table(["trained on", "evaluated on", "seeds", "scene episodes",
+                           "success ± t over seeds", "crash", "out of road",
+                           "seed: success [t over its scene episodes]"], rows)
 
 
 def reach_table(records, thresholds=(0.5, 0.6, 0.7), by="method", order=(),
