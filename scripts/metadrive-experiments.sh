@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
-# Part 3 of issue #14: the learner trained on MetaDrive's own intersection with IPPO (seeds
-# 1 and 2 by default), its success curve beside CoPO's published IPPO curve, then the 2 × 2
-# cross-simulator evaluation: a policy trained in Junction and the MetaDrive-trained ones, each
-# evaluated in Junction's intersection and in MetaDrive's (1000 agent episodes each).
+# The learner trained on MetaDrive's own intersection with IPPO, its success curve beside
+# CoPO's published IPPO curve, and the cross-simulator 2 × 2: policies trained in Junction's
+# twin of that intersection and the MetaDrive-trained ones, each evaluated in the twin and in
+# MetaDrive (1000 agent episodes each), over training seeds.
 #
-#   scripts/metadrive-experiments.sh [JUNCTION_CHECKPOINT]
-#   BUDGET=5000000 OUT=results/metadrive-5m scripts/metadrive-experiments.sh results/grid-1m/runs/ippo-intersection-s1
+#   scripts/metadrive-experiments.sh [JUNCTION_RUN...]
+#   BUDGET=5000000 SEEDS="1 2 3" TWIN_SEEDS="1 2 3" OUT=results/cross-sim-5m scripts/metadrive-experiments.sh
 #
-# JUNCTION_CHECKPOINT: a run directory, checkpoint directory or policy.safetensors trained in
-# Junction's simulator; without it the table has only the MetaDrive-trained rows.
+# JUNCTION_RUN: run directories, checkpoint directories or policy.safetensors trained in
+# Junction's simulator, evaluated in both as the twin's row besides TWIN_SEEDS' runs.
 #
 # Resumable: rerun the same command. A training run that reached BUDGET is kept; one that was
 # stopped continues from its newest checkpoint (`learner serve --resume`); an evaluation whose
@@ -16,7 +16,10 @@
 #
 # Knobs (environment variables; defaults in brackets):
 #   BUDGET          agent-steps per training run (run.max_agent_steps) [2500000]
-#   SEEDS           run.seed values [1 2]
+#   SEEDS           run.seed values of the MetaDrive-trained runs [1 2]
+#   TWIN_SEEDS      run.seed values of runs trained on JUNCTION_EVAL in Junction's simulator
+#                   (scripts/ablation.sh, local mode, the defaults, BUDGET agent-steps each):
+#                   the twin's row of the 2 × 2 [none]
 #   ACTORS          MetaDrive actor processes per run (one core each, MetaDrive is
 #                   single-threaded; the learner's updates take the rest) [2]
 #   SCENARIO        the MetaDrive scenario to train on [intersection-on-metadrive]
@@ -31,10 +34,11 @@
 #   OUT             results directory [results/metadrive]
 #   BIN             directory of the learner and actor binaries [target/release]
 #
-# Writes OUT/REPORT.md (curve points at the marks, the 2 × 2 table with 95 % intervals, the
-# commands), OUT/report/ (`python -m junction.analysis report` over the runs),
-# OUT/runs/ippo-s<seed>/ (each run's learner.log, actor-<k>.log, progress.jsonl, checkpoints)
-# and OUT/eval/<cell>/ (eval JSON/CSV).
+# Writes OUT/REPORT.md (`python -m junction.analysis tables`: the curves at the marks beside
+# CoPO's, the 2 × 2 over training seeds, every evaluation), OUT/report/ (`python -m
+# junction.analysis report` over the runs), OUT/runs/ippo-s<seed>/ (each MetaDrive-trained
+# run's learner.log, actor-<k>.log, progress.jsonl, checkpoints), OUT/runs/twin-s<seed>/ (the
+# twin's runs, evaluated at home in their eval/) and OUT/eval/<cell>/ (eval JSON/CSV).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
@@ -51,7 +55,8 @@ PROGRESS_S=${PROGRESS_S:-10}
 LEARNER_FLAGS=${LEARNER_FLAGS:-}
 OUT=${OUT:-results/metadrive}
 PY=.venv/bin/python
-JUNCTION_CHECKPOINT=${1:-}
+TWIN_SEEDS=${TWIN_SEEDS:-}
+junction_runs=("$@")
 STARTED=$(date +%s)
 
 say() { echo "metadrive-experiments: $*" >&2; }
@@ -63,9 +68,9 @@ done
 "$PY" -c "import junction._proto, metadrive" 2>/dev/null \
     || die "the junction package or metadrive-simulator is missing: run make python first"
 case "$BUDGET" in '' | *[!0-9]*) die "BUDGET must be a number of agent-steps, not '$BUDGET'" ;; esac
-if [ -n "$JUNCTION_CHECKPOINT" ] && [ ! -e "$JUNCTION_CHECKPOINT" ]; then
-    die "$JUNCTION_CHECKPOINT does not exist"
-fi
+for run in "${junction_runs[@]}"; do
+    [ -e "$run" ] || die "$run does not exist"
+done
 mkdir -p "$OUT/runs" "$OUT/eval"
 
 # Agent-steps the run in $1 has trained on (0 without progress).
@@ -131,6 +136,19 @@ train() {
     return $status
 }
 
+if [ -n "$TWIN_SEEDS" ]; then
+    arms=$(mktemp)
+    printf 'twin\t\n' >"$arms"
+    ARMS="$arms" OUT="$OUT" SCENARIO="$JUNCTION_EVAL" BUDGET="$BUDGET" SEEDS="$TWIN_SEEDS" \
+        EVAL_EPISODES="$EVAL_EPISODES" EVAL_SEED="$EVAL_SEED" EVAL_SAMPLED=0 BIN="$BIN" \
+        scripts/ablation.sh || say "the twin's training stopped or failed (see above)"
+    rm -f "$arms"
+    [ "$interrupted" = 1 ] && die "stopped; rerun the same command to continue"
+    for seed in $TWIN_SEEDS; do
+        junction_runs+=("$OUT/runs/twin-s$seed")
+    done
+fi
+
 for seed in $SEEDS; do
     [ "$interrupted" = 1 ] && break
     run=$OUT/runs/ippo-s$seed
@@ -168,103 +186,32 @@ for seed in $SEEDS; do
     evaluate "metadrive-s$seed-in-metadrive" "$run" metadrive
     evaluate "metadrive-s$seed-in-junction" "$run" junction
 done
-if [ -n "$JUNCTION_CHECKPOINT" ]; then
-    evaluate "junction-in-metadrive" "$JUNCTION_CHECKPOINT" metadrive
-    evaluate "junction-in-junction" "$JUNCTION_CHECKPOINT" junction
-fi
+for run in "${junction_runs[@]}"; do
+    [ -e "$run" ] || continue
+    name=$(basename "${run%/}")
+    [ "$name" = policy.safetensors ] && name=$(basename "$(dirname "$run")")
+    evaluate "junction-$name-in-metadrive" "$run" metadrive
+    # The twin's runs were evaluated at home by ablation.sh.
+    [ -f "$run/eval/eval-$JUNCTION_EVAL-seed$EVAL_SEED.json" ] \
+        || evaluate "junction-$name-in-junction" "$run" junction
+done
 
 # The analysis module is standard-library Python: the system python3 runs it from python/.
 PYTHONPATH=python python3 -m junction.analysis report "$OUT/runs" --out "$OUT/report" \
     --marks "$MARKS" >"$OUT/report.log" 2>&1 \
     || say "the report failed (see $OUT/report.log)"
 
-"$PY" - "$OUT" "$BUDGET" "$MARKS" "$SEEDS" "$JUNCTION_CHECKPOINT" "$JUNCTION_EVAL" \
-    "$SCENARIO" "$EVAL_EPISODES" "$EVAL_SEED" "$(( $(date +%s) - STARTED ))" <<'EOF'
-"""OUT/REPORT.md: the curve at the marks beside CoPO's, and the cross-simulator table."""
-import json, sys
-from importlib.metadata import version
-from pathlib import Path
-
-out, budget, marks, seeds, junction_ckpt, junction_eval, scenario, episodes, eval_seed, wall = sys.argv[1:]
-out, marks, seeds = Path(out), [int(m) for m in marks.split(",")], seeds.split()
-# CoPO's IPPO on MetaDrive's intersection, 8 seeds: environment steps × 25 agent-steps.
-copo = {2_500_000: 0.19, 3_750_000: 0.33, 5_000_000: 0.50, 6_250_000: 0.58, 7_500_000: 0.63}
-
-
-def at(lines, mark, key):
-    """The value of `key` on the first progress line at or past `mark` agent-steps."""
-    for line in lines:
-        if line.get("agent_steps", 0) >= mark:
-            return key(line)
-    return None
-
-
-md = ["# IPPO on MetaDrive's intersection, and across simulators", ""]
-md += [f"Scenario `{scenario}` (MetaDrive {version('metadrive-simulator')}, physics only), "
-       f"budget {int(budget):,} agent-steps per seed, seeds {' '.join(seeds)}; evaluations of "
-       f"{episodes} agent episodes, seed {eval_seed}. Wall time {int(wall) // 60} min.", ""]
-md += ["## Training success at agent-step marks", "",
-       "MetaDrive's definition (per MetaDrive episode the share of its agents that arrived, "
-       "averaged over the last scene episodes of `progress.jsonl`'s `scene_window`; the "
-       "stochastic training policy) and ours (share of the last agent episodes, `window`). "
-       "CoPO's IPPO: its learning-curve figure, 8 seeds, environment steps × 25.", ""]
-md.append("| agent-steps | " + " | ".join(f"seed {s} (MetaDrive's / ours)" for s in seeds)
-          + " | CoPO's IPPO |")
-md.append("|---|" + "---|" * (len(seeds) + 1))
-runs = {s: [json.loads(l) for l in (out / f"runs/ippo-s{s}/progress.jsonl").read_text().splitlines()
-            if l.strip()] if (out / f"runs/ippo-s{s}/progress.jsonl").exists() else [] for s in seeds}
-for mark in marks:
-    if mark > int(budget) and mark not in copo:
-        continue
-    cells = []
-    for s in seeds:
-        scene = at(runs[s], mark, lambda l: l.get("scene_window", {}).get("success_rate"))
-        ours = at(runs[s], mark, lambda l: l.get("window", {}).get("success_rate"))
-        cells.append("—" if scene is None else f"{scene:.3f} / {ours:.3f}")
-    reference = f"{copo[mark]:.2f}" if mark in copo else "—"
-    md.append(f"| {mark:,} | " + " | ".join(cells) + f" | {reference} |")
-md.append("")
-
-
-def cell(name):
-    files = sorted((out / "eval" / name).glob("eval-*.json"))
-    if not files:
-        return None
-    return json.loads(files[0].read_text())
-
-
-def fmt(estimate):
-    if estimate is None:
-        return "—"
-    low, high = estimate.get("low"), estimate.get("high")
-    ci = f" [{low:.3f}, {high:.3f}]" if low is not None and high is not None else ""
-    return f"{estimate['value']:.3f}{ci}"
-
-
-md += ["## Cross-simulator evaluation", "",
-       f"Every agent takes the policy's mean action. *In Junction*: `actor eval` on "
-       f"`{junction_eval}` (Junction's twin of MetaDrive's intersection); *in MetaDrive*: "
-       f"`python -m junction.metadrive_eval` on `{scenario}`. Success and crash over agent "
-       "episodes with 95 % Wilson intervals; MetaDrive's success rate (per MetaDrive episode) "
-       "with a 95 % t interval over scene episodes.", "",
-       "| trained in | evaluated in | episodes | success | crash | out of road | success (MetaDrive's) |",
-       "|---|---|---|---|---|---|---|"]
-rows = [(f"MetaDrive, seed {s}", f"metadrive-s{s}") for s in seeds]
-if junction_ckpt:
-    rows.insert(0, (f"Junction (`{junction_ckpt}`)", "junction"))
-for label, prefix in rows:
-    for where in ("junction", "metadrive"):
-        r = cell(f"{prefix}-in-{where}")
-        if r is None:
-            md.append(f"| {label} | {where} | — | — | — | — | — |")
-            continue
-        m = r["metrics"]
-        md.append(f"| {label} | {'Junction' if where == 'junction' else 'MetaDrive'} | "
-                  f"{r['episodes']} | {fmt(m['success_rate'])} | {fmt(m['crash_rate'])} | "
-                  f"{fmt(m['out_of_road_rate'])} | {fmt(m.get('scene_success_rate'))} |")
-md += ["", "`python -m junction.analysis report` over the runs: "
-          "[report/report.md](report/report.md).", ""]
-(out / "REPORT.md").write_text("\n".join(md))
-print("\n".join(md))
-EOF
+{
+    echo "# IPPO on MetaDrive's intersection, and across simulators"
+    echo
+    echo "\`$SCENARIO\` (MetaDrive $("$PY" -c "from importlib.metadata import version; print(version('metadrive-simulator'))")),"
+    echo "seeds $SEEDS; Junction's twin \`$JUNCTION_EVAL\`, seeds ${TWIN_SEEDS:-none}; $BUDGET agent-steps"
+    echo "per run; evaluations of $EVAL_EPISODES agent episodes on seed $EVAL_SEED, mean action."
+    echo "Wall time $(( ($(date +%s) - STARTED) / 60 )) min. Made by:"
+    echo
+    echo "    PYTHONPATH=python python3 -m junction.analysis tables $OUT --marks $MARKS --eval-seed $EVAL_SEED --only marks,run-marks,cross-sim,evals"
+    echo
+    PYTHONPATH=python python3 -m junction.analysis tables "$OUT" --marks "$MARKS" \
+        --eval-seed "$EVAL_SEED" --only marks,run-marks,cross-sim,evals
+} >"$OUT/REPORT.md" || say "the tables failed (see $OUT/REPORT.md)"
 say "done in $(( ($(date +%s) - STARTED) / 60 )) min: $OUT/REPORT.md"
