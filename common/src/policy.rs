@@ -331,6 +331,14 @@ impl GaussianPolicy {
         self.action_std
     }
 
+    /// Holds the learned global log-std at or under `ceiling` (`ppo.log_std_cap`): a value
+    /// under it is left as it is.
+    pub fn cap_log_std(&self, ceiling: f64) {
+        tch::no_grad(|| {
+            let _ = self.log_std.shallow_clone().clamp_max_(ceiling);
+        });
+    }
+
     /// Batched inference for actors: `obs` row-major [rows][obs_dim]; `noise` [rows][action_dim]
     /// standard normal draws (all zero gives the mean action). Returns actions and their
     /// log-probabilities under this policy.

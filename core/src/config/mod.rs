@@ -37,7 +37,7 @@ pub use lcf::{
     CcppoConfig, CopoConfig, DynamicLcfConfig, GlobalReturn, LcfConfig, NeighbourhoodReward,
 };
 pub use learner::{AlgoKind, CurriculumConfig, DeviceChoice, LearnerSection};
-pub use ppo::{ActionStd, LrSchedule, PpoConfig, PpoObjective};
+pub use ppo::{ActionStd, LogStdCap, LrSchedule, PpoConfig, PpoObjective};
 pub use reward::{CostConfig, RewardConfig, RewardKind};
 pub use roads::{IntersectionConfig, Manoeuvre, RoundaboutConfig, SpawnConfig};
 pub use run::{RolloutConfig, RunSection};

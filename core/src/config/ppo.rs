@@ -21,6 +21,8 @@ pub struct PpoConfig {
     pub max_grad_norm: f64,
     pub hidden: Vec<i64>,
     pub init_log_std: f64,
+    pub log_std_cap: LogStdCap,
+    pub final_log_std_cap: f64,
     pub normalize_advantages: bool,
     pub normalize_observations: bool,
     pub objective: PpoObjective,
@@ -82,6 +84,30 @@ impl LrSchedule {
     }
 }
 
+/// Whether the policy's global log-std is held under a ceiling that falls over the run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LogStdCap {
+    /// Learned freely.
+    None,
+    /// At most `init_log_std` at the start of the budget, falling linearly to
+    /// `final_log_std_cap` at its end; no cap in a run without a budget.
+    Linear,
+}
+
+impl LogStdCap {
+    /// The ceiling once the share `spent` of the run's budget is used (None: no ceiling).
+    pub fn ceiling(self, init: f64, last: f64, spent: Option<f64>) -> Option<f64> {
+        match (self, spent) {
+            (LogStdCap::Linear, Some(spent)) => {
+                let spent = spent.clamp(0.0, 1.0);
+                Some(init + (last - init) * spent)
+            }
+            _ => None,
+        }
+    }
+}
+
 /// How the PPO algorithms treat data from actors whose policy lags the learner's.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -139,6 +165,15 @@ impl PpoConfig {
                     .to_string(),
             );
         }
+        if p.log_std_cap == LogStdCap::Linear
+            && !(p.final_log_std_cap.is_finite() && p.final_log_std_cap <= p.init_log_std)
+        {
+            problems.push(
+                "ppo.final_log_std_cap must be a number <= ppo.init_log_std when ppo.log_std_cap \
+                 = \"linear\""
+                    .to_string(),
+            );
+        }
         if p.hidden.is_empty() || p.hidden.iter().any(|&h| h <= 0) {
             problems.push("ppo.hidden must list at least one positive layer size".to_string());
         }
@@ -168,5 +203,31 @@ mod tests {
         assert_eq!(RunConfig::default().ppo.lr_schedule, LrSchedule::Linear);
         let constant = RunConfig::load(None, &["ppo.lr_schedule=\"constant\"".into()]);
         assert_eq!(constant.unwrap().ppo.lr_schedule, LrSchedule::Constant);
+    }
+
+    #[test]
+    fn the_log_std_ceiling_falls_from_the_initial_value_to_the_final_one_over_the_budget() {
+        let linear = LogStdCap::Linear;
+        assert_eq!(linear.ceiling(0.0, -1.5, Some(0.0)), Some(0.0));
+        assert_eq!(linear.ceiling(0.0, -1.5, Some(0.5)), Some(-0.75));
+        assert_eq!(linear.ceiling(0.0, -1.5, Some(2.0)), Some(-1.5));
+        assert_eq!(linear.ceiling(0.0, -1.5, None), None);
+        assert_eq!(LogStdCap::None.ceiling(0.0, -1.5, Some(0.5)), None);
+        assert_eq!(RunConfig::default().ppo.log_std_cap, LogStdCap::None);
+        let load = |cap: &str| {
+            RunConfig::load(
+                None,
+                &[
+                    "ppo.log_std_cap=\"linear\"".into(),
+                    format!("ppo.final_log_std_cap={cap}"),
+                ],
+            )
+        };
+        assert_eq!(load("-2.0").unwrap().ppo.final_log_std_cap, -2.0);
+        // A ceiling that would rise above the initial log-std, or is not a number, is refused.
+        for bad in ["0.5", "nan"] {
+            let error = load(bad).unwrap_err().to_string();
+            assert!(error.contains("ppo.final_log_std_cap"), "{bad}: {error}");
+        }
     }
 }

@@ -104,7 +104,7 @@ mod tests {
     use junction_common::fragment::RolloutFragment;
     use junction_common::policy::Policy;
     use junction_common::weights::{self, Decoded};
-    use junction_core::config::{LrSchedule, RunConfig};
+    use junction_core::config::{LogStdCap, LrSchedule, RunConfig};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
     use tch::Tensor;
@@ -198,6 +198,51 @@ mod tests {
         }
         let base = run.ppo.learning_rate;
         assert_eq!(rates, vec![base, 0.75 * base, 0.0]);
+    }
+
+    /// The spread of the first action value the policy samples in one state.
+    fn sampled_std(policy: &dyn Policy) -> f32 {
+        let rows = 4000;
+        let obs = vec![0.5f32; rows * policy.obs_dim()];
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let (actions, _) = policy.sample(&obs, &mut rng).unwrap();
+        let first: Vec<f32> = actions
+            .iter()
+            .step_by(policy.action_dim())
+            .copied()
+            .collect();
+        let mean = first.iter().sum::<f32>() / rows as f32;
+        (first.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / rows as f32).sqrt()
+    }
+
+    #[test]
+    fn the_log_std_cap_holds_the_policy_under_a_ceiling_falling_over_the_budget() {
+        let _rng = crate::test_rng::seeded(4);
+        let mut run = RunConfig::default();
+        run.ppo.hidden = vec![8];
+        run.run.max_agent_steps = 1000;
+        let update_at = |run: &RunConfig, consumed| {
+            let mut algo = ippo(run, 3, 2);
+            algo.set_progress(run.run.budget_spent(consumed, 0.0));
+            algo.update(&[bandit_fragment(algo.policy(), 0)]).unwrap();
+            sampled_std(algo.policy())
+        };
+        // Learned freely, one update leaves the unit std about where it started.
+        let free = update_at(&run, 500);
+        assert!((free - 1.0).abs() < 0.1, "free std {free}");
+        run.ppo.log_std_cap = LogStdCap::Linear;
+        run.ppo.final_log_std_cap = -2.0;
+        // Half the budget spent: the ceiling is −1, std e^−1 ≈ 0.37; at the start it is 0.
+        let capped = update_at(&run, 500);
+        assert!(
+            (capped - (-1.0f32).exp()).abs() < 0.03,
+            "capped std {capped}"
+        );
+        let at_start = update_at(&run, 0);
+        assert!(
+            (at_start - free).abs() < 0.05,
+            "std at the start {at_start}"
+        );
     }
 
     #[test]

@@ -68,6 +68,8 @@ pub struct SharedPpo<C> {
     adam: Adam,
     /// The KL penalty's current coefficient (0: no penalty).
     kl_coef: f64,
+    /// `ppo.log_std_cap`'s ceiling at the budget spent so far (None: no ceiling).
+    log_std_ceiling: Option<f64>,
     /// `learner.split_update` in effect: the policy's and the value part of each minibatch
     /// on two threads.
     parallel: bool,
@@ -133,6 +135,7 @@ impl<C: CriticInput> SharedPpo<C> {
             critics,
             adam,
             kl_coef: config.kl_coef,
+            log_std_ceiling: None,
             parallel: run.learner.split_update
                 && device == Device::Cpu
                 && tch::get_num_threads() >= 2,
@@ -339,6 +342,9 @@ impl<C: CriticInput> SharedPpo<C> {
         let max_grad_norm = self.config.max_grad_norm;
         let grad_norm = phases.time("gradient clip", || self.adam.clip_grad_norm(max_grad_norm));
         phases.time("Adam step", || self.adam.step());
+        if let Some(ceiling) = self.log_std_ceiling {
+            self.policy.cap_log_std(ceiling);
+        }
         Ok(Some(Losses {
             policy: policy.surrogate,
             value: value.first_head,
@@ -733,6 +739,9 @@ impl<C: CriticInput> Algorithm for SharedPpo<C> {
         let c = &self.config;
         self.adam
             .set_learning_rate(c.lr_schedule.learning_rate(c.learning_rate, budget_spent));
+        self.log_std_ceiling =
+            c.log_std_cap
+                .ceiling(c.init_log_std, c.final_log_std_cap, budget_spent);
     }
 
     /// The module documentation's outline, one line per stage.
