@@ -15,7 +15,7 @@
 #   BUDGET           agent-steps per run [5000000]
 #   SEEDS            run.seed values [1 2 3]
 #   ACTORS           local actors per run [2]
-#   MAX_RUN_SECONDS  wall-clock cap per run [3600]
+#   MAX_RUN_SECONDS  wall-clock cap per run, 0 for none [3600]
 #   EVAL_EPISODES    agent episodes per evaluation [1000]
 #   EVAL_SEED        evaluation seed: a validation seed, not the one final results use [777]
 #   EVAL_SAMPLED     1: evaluate with sampled actions as well as the mean action (`actor eval

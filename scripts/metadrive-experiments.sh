@@ -141,7 +141,7 @@ if [ -n "$TWIN_SEEDS" ]; then
     printf 'twin\t\n' >"$arms"
     ARMS="$arms" OUT="$OUT" SCENARIO="$JUNCTION_EVAL" BUDGET="$BUDGET" SEEDS="$TWIN_SEEDS" \
         EVAL_EPISODES="$EVAL_EPISODES" EVAL_SEED="$EVAL_SEED" EVAL_SAMPLED=0 BIN="$BIN" \
-        scripts/ablation.sh || say "the twin's training stopped or failed (see above)"
+        MAX_RUN_SECONDS=0 scripts/ablation.sh || say "the twin's training stopped or failed (see above)"
     rm -f "$arms"
     [ "$interrupted" = 1 ] && die "stopped; rerun the same command to continue"
     for seed in $TWIN_SEEDS; do
