@@ -134,6 +134,21 @@ impl PpoConfig {
         if p.clip <= 0.0 {
             problems.push("ppo.clip must be > 0".to_string());
         }
+        // Written as "all valid" so that a NaN is a problem too.
+        let weights_valid = p.entropy_coef.is_finite()
+            && p.value_coef >= 0.0
+            && p.value_coef.is_finite()
+            && p.value_clip >= 0.0
+            && p.max_grad_norm >= 0.0
+            && p.adam_eps > 0.0
+            && p.init_log_std.is_finite();
+        if !weights_valid {
+            problems.push(
+                "ppo.entropy_coef and ppo.init_log_std must be numbers, ppo.value_coef, \
+                 ppo.value_clip and ppo.max_grad_norm >= 0, and ppo.adam_eps > 0"
+                    .to_string(),
+            );
+        }
         if !(p.max_importance_weight > 0.0) {
             problems.push("ppo.max_importance_weight must be > 0".to_string());
         }
@@ -229,5 +244,24 @@ mod tests {
             let error = load(bad).unwrap_err().to_string();
             assert!(error.contains("ppo.final_log_std_cap"), "{bad}: {error}");
         }
+    }
+
+    #[test]
+    fn loss_weights_that_are_not_numbers_or_are_negative_are_refused() {
+        for bad in [
+            "ppo.entropy_coef=nan",
+            "ppo.value_coef=-1.0",
+            "ppo.value_clip=-1.0",
+            "ppo.max_grad_norm=nan",
+            "ppo.adam_eps=0.0",
+            "ppo.init_log_std=inf",
+        ] {
+            let error = RunConfig::load(None, &[bad.to_string()])
+                .unwrap_err()
+                .to_string();
+            assert!(error.contains("ppo.value_coef"), "{bad}: {error}");
+        }
+        // A negative entropy weight (pushing the std down) is a choice, not an error.
+        assert!(RunConfig::load(None, &["ppo.entropy_coef=-0.01".into()]).is_ok());
     }
 }
