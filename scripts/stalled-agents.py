@@ -24,20 +24,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
 import junction  # noqa: E402
-from junction.policy import load_file  # noqa: E402
+from junction.metadrive_eval import EvalError, policy_file  # noqa: E402
+from junction.policy import PolicyError, load_file  # noqa: E402
 
 SPEED = 3  # observation index of the speed, (km/h + 1) / 81 (docs/OBSERVATION.md)
 LIDAR = 19  # first lidar beam (spec::LIDAR_OFFSET), beam 0 along the heading, 5° apart
 LIDAR_RANGE_M = 50.0
 STANDING_KMH = 1.0
-
-
-def policy_file(path: Path) -> Path:
-    """A run directory's newest checkpoint, a checkpoint directory, or the file itself."""
-    if path.is_file():
-        return path
-    checkpoints = sorted(path.glob("checkpoints/ckpt-*"))
-    return (checkpoints[-1] if checkpoints else path) / "policy.safetensors"
 
 
 def main() -> None:
@@ -50,7 +43,10 @@ def main() -> None:
     p.add_argument("--actions", choices=("mean", "sample"), default="mean")
     args = p.parse_args()
 
-    policy = load_file(str(policy_file(args.checkpoint)))
+    try:
+        policy = load_file(str(policy_file(args.checkpoint)))
+    except (EvalError, PolicyError, OSError) as e:
+        p.error(str(e))
     env = junction.VectorEnv(args.scenario, num_scenes=args.scenes, seed=args.seed)
     obs, info = env.reset(seed=args.seed)
     rng = np.random.default_rng(args.seed)
