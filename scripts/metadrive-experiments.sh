@@ -8,7 +8,7 @@
 #   BUDGET=5000000 SEEDS="1 2 3" TWIN_SEEDS="1 2 3" OUT=results/cross-sim-5m scripts/metadrive-experiments.sh
 #
 # JUNCTION_RUN: run directories, checkpoint directories or policy.safetensors trained in
-# Junction's simulator, evaluated in both as the twin's row besides TWIN_SEEDS' runs.
+# Junction's simulator, evaluated in both as the twin's row beside TWIN_SEEDS' runs.
 #
 # Resumable: rerun the same command. A training run that reached BUDGET is kept; one that was
 # stopped continues from its newest checkpoint (`learner serve --resume`); an evaluation whose
